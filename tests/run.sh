@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# The README's test command. On a fresh clone it builds the CLI, lets `hifar setup` create the
+# pinned Python environment, then runs the Python tests and the CLI's integration tests.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+root=$PWD
+
+# JAX's persistent compilation cache lives in a directory the tests own, so a second run of the
+# suite skips most XLA compiles.
+export JAX_COMPILATION_CACHE_DIR="$root/tests/.cache/jax"
+export JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
+export JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES=0
+export HIFAR_VENV="${HIFAR_VENV:-$root/.venv}"
+mkdir -p "$JAX_COMPILATION_CACHE_DIR"
+
+cargo build --release --locked
+"$root/target/release/hifar" setup
+
+"$HIFAR_VENV/bin/python" -m pytest -q tests/python
+cargo test --release --locked
