@@ -2,7 +2,7 @@
 // lives, so a pyenv or /usr/local Python would not be found at run time without an rpath.
 fn main() {
     let config = pyo3_build_config::get();
-    if let Some(dir) = &config.lib_dir {
+    if let Some(dir) = config.lib_dir() {
         println!("cargo:rustc-link-arg=-Wl,-rpath,{dir}");
     }
     println!("cargo:rerun-if-changed=build.rs");

@@ -16,5 +16,5 @@ mkdir -p "$JAX_COMPILATION_CACHE_DIR"
 cargo build --release --locked
 "$root/target/release/hifar" setup
 
-"$HIFAR_VENV/bin/python" -m pytest -q tests/python
+"$HIFAR_VENV/bin/python" -m pytest -q --durations=10 tests/python
 cargo test --release --locked

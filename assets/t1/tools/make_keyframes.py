@@ -37,22 +37,15 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from jax_env.robot import JOINT_NAMES
+
 SCENE = Path(__file__).resolve().parents[1] / "scene.xml"
 SETTLE_S = 2.0
 HOLD_S = 1.0
 MAX_PENETRATION = 1e-3
 MAX_DRIFT = 0.05
 
-JOINTS = (
-    "AAHead_yaw", "Head_pitch",
-    "Left_Shoulder_Pitch", "Left_Shoulder_Roll", "Left_Elbow_Pitch", "Left_Elbow_Yaw",
-    "Right_Shoulder_Pitch", "Right_Shoulder_Roll", "Right_Elbow_Pitch", "Right_Elbow_Yaw",
-    "Waist",
-    "Left_Hip_Pitch", "Left_Hip_Roll", "Left_Hip_Yaw", "Left_Knee_Pitch",
-    "Left_Ankle_Pitch", "Left_Ankle_Roll",
-    "Right_Hip_Pitch", "Right_Hip_Roll", "Right_Hip_Yaw", "Right_Knee_Pitch",
-    "Right_Ankle_Pitch", "Right_Ankle_Roll",
-)
+JOINTS = JOINT_NAMES
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,0 +1,147 @@
+//! Command-line definitions (clap derive). Parsing only: every command lives in `commands`.
+
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand, ValueEnum};
+
+/// Train Booster T1 fall-recovery policies with the HiFAR two-stage curriculum.
+#[derive(Debug, Parser)]
+#[command(name = "hifar", version, about, long_about = None)]
+#[command(propagate_version = true)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Create the Python environment (HIFAR_VENV, default <repo>/.venv) with pinned packages.
+    Setup(SetupArgs),
+    /// Report Python, JAX devices, MuJoCo/MJX/brax and the backend hifar would use.
+    Doctor,
+    /// Validate a curriculum (Rust schema and Python names) without training.
+    Check(CheckArgs),
+    /// Train every stage of a curriculum into a run directory.
+    Train(TrainArgs),
+    /// Expand a checkpoint into a stage's feature layout (no Python).
+    ExpandCheckpoint(ExpandArgs),
+    /// Deterministic actions of a checkpoint's deployable actor for observation rows.
+    Act(ActArgs),
+    /// Measure physics and learner throughput (raw mujoco.batch, native env, MJX env, learner).
+    Bench(BenchArgs),
+    /// List runs, or show one.
+    Runs(RunsArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct SetupArgs {
+    /// Recreate the environment even if it is up to date.
+    #[arg(long)]
+    pub force: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct CheckArgs {
+    /// Curriculum TOML file.
+    pub curriculum: PathBuf,
+    /// Check only this stage.
+    #[arg(long, value_name = "NAME")]
+    pub stage: Option<String>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum BackendArg {
+    Mjx,
+    Native,
+}
+
+impl BackendArg {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            BackendArg::Mjx => "mjx",
+            BackendArg::Native => "native",
+        }
+    }
+}
+
+#[derive(Debug, Args)]
+pub struct TrainArgs {
+    /// Curriculum TOML file.
+    pub curriculum: PathBuf,
+    /// Run directory [default: runs/<curriculum name>-<UTC time>].
+    #[arg(long, value_name = "DIR")]
+    pub run_dir: Option<PathBuf>,
+    /// Experiment seed (overrides the curriculum's `seed`).
+    #[arg(long, value_name = "N")]
+    pub seed: Option<u64>,
+    /// Parallel environments per stage (overrides every stage's `ppo.num_envs`).
+    #[arg(long, value_name = "N")]
+    pub num_envs: Option<u32>,
+    /// Physics backend (overrides the curriculum's `backend`).
+    #[arg(long, value_enum)]
+    pub backend: Option<BackendArg>,
+    /// Continue the run in --run-dir from its last checkpoint.
+    #[arg(long, requires = "run_dir", conflicts_with = "force")]
+    pub resume: bool,
+    /// Delete an existing run directory and start over.
+    #[arg(long)]
+    pub force: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct ExpandArgs {
+    /// Checkpoint directory to expand.
+    pub checkpoint: PathBuf,
+    /// Curriculum that defines the target stage.
+    #[arg(long, value_name = "FILE")]
+    pub curriculum: PathBuf,
+    /// Target stage name.
+    #[arg(long, value_name = "NAME")]
+    pub stage: String,
+    /// Output checkpoint directory (must not exist).
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct ActArgs {
+    /// Checkpoint directory.
+    pub checkpoint: PathBuf,
+    /// JSON file: {"obs": [[...], ...], "history": [[[...]]] (optional)}.
+    #[arg(long, value_name = "FILE")]
+    pub input: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// Print one JSON document ({"results": [...]}) instead of the table.
+    #[arg(long)]
+    pub json: bool,
+    /// Batch sizes [default: 64 256 1024; with --quick: 16].
+    #[arg(long, num_args = 1.., value_name = "N")]
+    pub batches: Vec<u32>,
+    /// Short measurements without MJX and the learner (their compiles take minutes on a CPU).
+    #[arg(long)]
+    pub quick: bool,
+    /// Skip the MJX environment above this batch size.
+    #[arg(long, value_name = "N")]
+    pub mjx_max_batch: Option<u32>,
+}
+
+#[derive(Debug, Args)]
+#[command(args_conflicts_with_subcommands = true)]
+pub struct RunsArgs {
+    /// Directory holding run directories.
+    #[arg(long, value_name = "DIR", default_value = "runs", global = true)]
+    pub root: PathBuf,
+    #[command(subcommand)]
+    pub command: Option<RunsCommand>,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum RunsCommand {
+    /// Details of one run (a run directory, or a run name under --root).
+    Show {
+        run: PathBuf,
+    },
+}

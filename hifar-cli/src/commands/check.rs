@@ -1,0 +1,112 @@
+//! `hifar check`: validate a curriculum without training.
+//!
+//! The Rust side (`curriculum::load`) checks syntax, keys, types and ranges; the Python side
+//! (`facade.check_stage`) checks the names it owns (joints, scenarios, keyframes, reward
+//! terms, randomization parameters). Python answers with key paths inside a stage; they are
+//! mapped back to `FILE:LINE:COL` here, so both kinds of error read the same.
+
+use std::path::Path;
+
+use anyhow::{anyhow, Result};
+use serde_json::Value;
+
+use crate::cli::CheckArgs;
+use crate::commands::{python_failure, runs::group_digits, setup};
+use crate::curriculum::{self, Curriculum};
+use crate::python::Facade;
+use crate::{bad_input, paths};
+
+pub fn run(args: &CheckArgs) -> Result<()> {
+    let curriculum = curriculum::load(&args.curriculum)?;
+    let indices: Vec<usize> = match &args.stage {
+        None => (0..curriculum.stages().len()).collect(),
+        Some(name) => vec![stage_index(&curriculum, name, &args.curriculum)?],
+    };
+    let facade = setup::ensure_python()?;
+    check_with_python(&facade, &curriculum, Some(&indices))?;
+
+    println!("{}: ok ({} stage{})", args.curriculum.display(), curriculum.stages().len(), if curriculum.stages().len() == 1 { "" } else { "s" });
+    for &index in &indices {
+        let stage = &curriculum.stages()[index];
+        let features = curriculum::feature_names(stage);
+        let init = match curriculum.init_source(index) {
+            Some(source) => format!("from {}", curriculum.stages()[source].name()),
+            None => "fresh".into(),
+        };
+        println!(
+            "  {}: {} obs, {} privileged, {} actions; budget {} env steps; init {}",
+            stage.name(),
+            features.obs_names.len(),
+            features.privileged_names.len(),
+            features.action_names.len(),
+            group_digits(stage.advance().env_steps),
+            init
+        );
+    }
+    Ok(())
+}
+
+/// Index of the stage called `name`, or a bad-input error listing the stages.
+pub fn stage_index(curriculum: &Curriculum, name: &str, file: &Path) -> Result<usize> {
+    curriculum.stages().iter().position(|s| s.name() == name).ok_or_else(|| {
+        let names: Vec<&str> = curriculum.stages().iter().map(|s| s.name()).collect();
+        bad_input!("{}: no stage named {name:?}; stages: {}", file.display(), names.join(", "))
+    })
+}
+
+/// Python's name checks for the given stages (all when `None`), each problem reported as
+/// `FILE:LINE:COL: message`; then a cross-check that Rust and Python agree on every stage's
+/// feature names (expansion depends on it).
+pub fn check_with_python(facade: &Facade, curriculum: &Curriculum, stages: Option<&[usize]>) -> Result<()> {
+    let all: Vec<usize> = (0..curriculum.stages().len()).collect();
+    let stages = stages.unwrap_or(&all);
+    let log = paths::command_log();
+    let mut problems = Vec::new();
+    for &index in stages {
+        let stage = &curriculum.stages()[index];
+        let issues = facade
+            .call("check_stage", &[stage.to_json()])
+            .map_err(|err| python_failure(&format!("facade.check_stage failed on stage {}", stage.name()), err, &log))?;
+        let Value::Array(issues) = issues else {
+            return Err(anyhow!("facade.check_stage returned {issues}, expected a list"));
+        };
+        for issue in issues {
+            let message = issue.get("message").and_then(Value::as_str).unwrap_or("invalid value");
+            let path: Vec<Value> = match issue.get("path") {
+                Some(Value::Array(path)) => path.clone(),
+                _ => Vec::new(),
+            };
+            problems.push(format!("{}: {message}", curriculum.locate(index, &path)));
+        }
+    }
+    if !problems.is_empty() {
+        return Err(bad_input!("{}", problems.join("\n")));
+    }
+    for &index in stages {
+        let stage = &curriculum.stages()[index];
+        let python = facade
+            .call("feature_names", &[stage.to_json()])
+            .map_err(|err| python_failure(&format!("facade.feature_names failed on stage {}", stage.name()), err, &log))?;
+        let rust = curriculum::feature_names(stage);
+        for (key, names) in [
+            ("obs_names", &rust.obs_names),
+            ("privileged_names", &rust.privileged_names),
+            ("action_names", &rust.action_names),
+        ] {
+            let theirs: Vec<&str> = python
+                .get(key)
+                .and_then(Value::as_array)
+                .map(|list| list.iter().filter_map(Value::as_str).collect())
+                .unwrap_or_default();
+            if theirs != names.iter().map(String::as_str).collect::<Vec<_>>() {
+                return Err(anyhow!(
+                    "stage {}: Rust and Python disagree on {key} ({} vs {} names); hifar and jax_env are out of sync",
+                    stage.name(),
+                    names.len(),
+                    theirs.len()
+                ));
+            }
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,219 @@
+use std::path::{Path, PathBuf};
+
+use serde_json::json;
+
+use super::*;
+use crate::robot::{LATERAL_JOINTS, SAGITTAL_JOINTS};
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
+}
+
+fn tiny_text() -> String {
+    std::fs::read_to_string(repo().join("tests/data/tiny.toml")).unwrap()
+}
+
+fn parse_text(text: &str) -> Result<Curriculum, CurriculumError> {
+    parse(Path::new("c.toml"), text.to_owned())
+}
+
+fn first_error(text: &str) -> String {
+    let Err(err) = parse_text(text) else { panic!("the curriculum should be rejected") };
+    err.to_string().lines().next().unwrap().to_owned()
+}
+
+#[test]
+fn tiny_loads_with_two_stages() {
+    let c = load(&repo().join("tests/data/tiny.toml")).unwrap();
+    assert_eq!(c.name(), "tiny");
+    assert_eq!(c.seed(), 7);
+    assert_eq!(c.backend(), "native");
+    let names: Vec<&str> = c.stages().iter().map(|s| s.name()).collect();
+    assert_eq!(names, ["planar", "full"]);
+    assert_eq!(c.init_source(0), None);
+    assert_eq!(c.init_source(1), Some(0));
+    assert_eq!(c.stages()[1].initial_action_std(), 0.5);
+    assert_eq!(c.stages()[1].advance().min_stand_rate, Some(0.8));
+    assert!(c.stages()[1].advance().on_miss_continue());
+
+    let planar = feature_names(&c.stages()[0]);
+    assert_eq!(planar.action_names, SAGITTAL_JOINTS.iter().map(|s| s.to_string()).collect::<Vec<_>>());
+    assert_eq!(planar.obs_names.len(), 6 + 3 * 10);
+    let full = feature_names(&c.stages()[1]);
+    assert_eq!(full.action_names.len(), SAGITTAL_JOINTS.len() + LATERAL_JOINTS.len());
+    assert!(planar.obs_names.iter().all(|n| full.obs_names.contains(n)));
+}
+
+#[test]
+fn stage_json_is_the_stage_table() {
+    let c = parse_text(&tiny_text()).unwrap();
+    let stage = c.stages()[0].to_json();
+    let keys: Vec<&str> = stage.as_object().unwrap().keys().map(String::as_str).collect();
+    assert_eq!(keys[..4], ["name", "init_from", "controlled_joints", "observed_joints"]);
+    assert_eq!(keys.len(), 4 + 16);
+    assert_eq!(stage["ppo"]["num_envs"], json!(8));
+    assert_eq!(stage["ppo"]["learning_rate"], json!(3e-4));
+    assert_eq!(stage["scenarios"]["ksi_prone_1"], json!(0.1));
+    assert_eq!(stage["scenarios"].as_object().unwrap().len(), 8, "omitted scenarios stay omitted");
+    assert_eq!(stage["rewards"]["survival"], json!(0.1));
+    assert!(stage["advance"].get("min_stand_rate").is_none(), "optional keys stay absent");
+    assert_eq!(
+        stage["domain_randomization"]["dof_position"],
+        json!({"range": [0.0, 0.05], "operation": "additive", "distribution": "gaussian"})
+    );
+    assert_eq!(stage["controlled_joints"][1], json!("Left_Elbow_Yaw"));
+    // A JSON round trip gives the same typed stage.
+    let back: Stage = serde_json::from_value(stage.clone()).unwrap();
+    assert_eq!(back.to_json(), stage);
+
+    let resolved = c.resolved_json();
+    assert_eq!(resolved["schema_version"], json!(1));
+    assert_eq!(resolved["stage"][1], c.stages()[1].to_json());
+}
+
+#[test]
+fn overrides_apply_and_are_checked() {
+    let mut c = parse_text(&tiny_text()).unwrap();
+    c.apply_overrides(Some(99), Some("mjx"), Some(16)).unwrap();
+    assert_eq!(c.seed(), 99);
+    assert_eq!(c.backend(), "mjx");
+    assert!(c.stages().iter().all(|s| s.ppo.num_envs == 16));
+    assert_eq!(c.stages()[0].to_json()["ppo"]["num_envs"], json!(16));
+    assert_eq!(c.resolved_json()["seed"], json!(99));
+
+    let err = c.apply_overrides(None, None, Some(9)).unwrap_err().to_string();
+    assert!(err.starts_with("--num-envs 9: stage \"planar\": num_envs = 9 is not divisible by num_minibatches = 2"), "{err}");
+    assert!(err.contains("(c.toml:"), "{err}");
+    assert!(c.apply_overrides(None, None, Some(0)).is_err());
+    let err = c.apply_overrides(None, Some("cuda"), None).unwrap_err().to_string();
+    assert_eq!(err, "--backend \"cuda\": expected one of auto, mjx, native");
+    assert_eq!(c.stages()[0].ppo.num_envs, 16, "a failed override changes nothing");
+}
+
+#[test]
+fn python_key_paths_map_to_lines() {
+    let text = tiny_text();
+    let c = parse_text(&text).unwrap();
+    let line_of = |needle: &str, nth: usize| -> (usize, usize) {
+        let mut pos = 0;
+        for _ in 0..nth {
+            pos = text[pos..].find(needle).unwrap() + pos + 1;
+        }
+        span::line_col(&text, pos - 1)
+    };
+    let loc = c.locate(0, &[json!("scenarios"), json!("supine")]);
+    assert_eq!((loc.line, loc.col), line_of("supine = 0.2", 1));
+    assert_eq!(loc.to_string(), format!("c.toml:{}:{}", loc.line, loc.col));
+    // The fourth controlled joint of the second stage.
+    let loc = c.locate(1, &[json!("controlled_joints"), json!(3)]);
+    assert_eq!((loc.line, loc.col), line_of("\"Right_Elbow_Yaw\"", 3));
+    // A key that is not in the file points at its table.
+    let loc = c.locate(1, &[json!("ppo"), json!("no_such_key")]);
+    assert_eq!((loc.line, loc.col), line_of("[stage.ppo]", 2));
+    // An empty path points at the stage's [[stage]] header.
+    let loc = c.locate(1, &[]);
+    assert_eq!((loc.line, loc.col), line_of("[[stage]]", 2));
+}
+
+/// Every fixture in tests/data/bad names its expected first error in its second line:
+/// `# expect: LINE:COL: fragment of the message`.
+#[test]
+fn bad_fixtures_report_the_offending_line() {
+    let dir = repo().join("tests/data/bad");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).collect();
+    files.retain(|p| p.extension().is_some_and(|e| e == "toml"));
+    files.sort();
+    assert!(files.len() >= 20, "fixtures missing in {}", dir.display());
+    let mut failures = Vec::new();
+    for file in &files {
+        let text = std::fs::read_to_string(file).unwrap();
+        let expect = text.lines().nth(1).and_then(|l| l.strip_prefix("# expect: ")).expect("an expect line");
+        let (position, fragment) = expect.split_once(": ").unwrap();
+        let Err(err) = load(file) else { panic!("{} should be rejected", file.display()) };
+        let first = err.to_string().lines().next().unwrap().to_owned();
+        let prefix = format!("{}:{position}: ", file.display());
+        if !first.starts_with(&prefix) || !first.contains(fragment) {
+            failures.push(format!("{}\n  expected {prefix}…{fragment}…\n  got      {first}", file.display()));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+#[test]
+fn all_problems_are_reported_in_file_order() {
+    let text = tiny_text()
+        .replacen("learning_rate = 3e-4", "learning_rate = -1.0", 1)
+        .replacen("num_envs = 8", "num_envs = 0", 2);
+    let err = parse_text(&text).unwrap_err();
+    let lines: Vec<(usize, usize)> = err.problems.iter().map(|p| p.line.unwrap()).collect();
+    assert_eq!(err.problems.len(), 3, "{err}");
+    assert!(lines.windows(2).all(|w| w[0] <= w[1]), "{lines:?}");
+    assert!(err.problems[0].message.contains("num_envs = 0"));
+    assert!(err.problems[1].message.contains("learning_rate = -1"));
+}
+
+#[test]
+fn more_rejections() {
+    let tiny = tiny_text();
+    let cases: &[(&str, &str, &str)] = &[
+        ("init_from = \"none\"", "init_from = \"previous\"", "there is no previous stage"),
+        ("init_from = \"planar\"", "init_from = \"full\"", "cannot start from itself"),
+        ("discount = 0.97", "discount = 1.5", "discount = 1.5 is out of range; expected >= 0 and <= 1"),
+        ("episode_s = 1.0", "episode_s = 0.01", "episode_s = 0.01 must be > ctrl_dt = 0.02"),
+        ("policy_hidden = [16, 16]", "policy_hidden = [16, 0]", "policy_hidden[1] = 0"),
+        ("slope_max_deg = 0.0", "slope_max_deg = 45.0", "slope_max_deg = 45 is out of range"),
+        ("settle_s = 0.2", "settle_s = 2.0", "settle_s = 2 must be < episode_s = 1"),
+        ("interval_s = [2.0, 4.0]", "interval_s = [4.0, 2.0]", "min 4 > max 2"),
+        ("min_stand_rate = 0.8", "min_stand_rate = 1.2", "min_stand_rate = 1.2 is out of range"),
+        ("learning_rate = 3e-4", "learning_rate = nan", "learning_rate = NaN must be a finite number"),
+        ("num_envs = 8", "num_envs = -8", "invalid value: integer `-8`, expected a non-negative integer"),
+        ("num_envs = 8", "num_envs = 8.0", "invalid type: floating point `8.0`, expected a non-negative integer"),
+        ("\"Left_Hip_Pitch\", \"Left_Knee_Pitch\"", "\"Left_Hip_Pitch\", \"Left_Hip_Pitch\"", "listed twice"),
+        ("range = [0.0, 0.05]", "range = [0.0, -0.05]", "std -0.05 must be >= 0"),
+        ("range = [0.0, 0.05]", "range = [0.0, 0.05, 1.0]", "invalid length 3"),
+        ("name = \"tiny\"", "name = \"my run\"", "must match [A-Za-z0-9_-]+"),
+        ("backend = \"native\"", "backend = \"gpu\"", "unknown value `gpu` for backend; expected one of `auto`, `mjx`, `native`"),
+    ];
+    for (old, new, fragment) in cases {
+        assert!(tiny.contains(old), "{old}");
+        let message = first_error(&tiny.replacen(old, new, 1));
+        assert!(message.contains(fragment), "{new}: {message}");
+        assert!(message.starts_with("c.toml:"), "{message}");
+    }
+    // Asymmetric joint lists break the mirror loss.
+    let text = tiny.replacen("\"Right_Shoulder_Pitch\", \"Right_Elbow_Yaw\",\n", "\"Right_Shoulder_Pitch\",\n", 1);
+    assert!(first_error(&text).contains("missing Right_Elbow_Yaw (mirror of Left_Elbow_Yaw)"));
+    // No stages at all.
+    let head = &tiny[..tiny.find("[[stage]]").unwrap()];
+    assert!(first_error(head).contains("missing required key `stage` in the top level"), "{}", first_error(head));
+    // No schema_version.
+    let text = tiny.replacen("schema_version = 1\n", "", 1);
+    assert_eq!(first_error(&text), "c.toml:1:1: missing schema_version; this hifar reads schema_version = 1 (add it as the first line)");
+    // A stage that drops a joint of the stage it starts from.
+    let text = tiny.replacen(
+        "controlled_joints = [\n  \"Left_Shoulder_Pitch\", \"Left_Elbow_Yaw\", \"Right_Shoulder_Pitch\", \"Right_Elbow_Yaw\",\n  \"Left_Hip_Pitch\", \"Left_Hip_Roll\"",
+        "controlled_joints = [\n  \"Left_Shoulder_Pitch\", \"Right_Shoulder_Pitch\",\n  \"Left_Hip_Pitch\", \"Left_Hip_Roll\"",
+        1,
+    );
+    assert!(first_error(&text).contains("drops controlled_joints Left_Elbow_Yaw, Right_Elbow_Yaw"), "{}", first_error(&text));
+}
+
+#[test]
+fn unreadable_file() {
+    let err = load(Path::new("/nonexistent/c.toml")).unwrap_err().to_string();
+    assert!(err.starts_with("/nonexistent/c.toml: cannot read the curriculum: "), "{err}");
+}
+
+#[test]
+fn shipped_curricula_are_valid() {
+    for name in ["curricula/hifar.toml", "curricula/quickstart.toml"] {
+        let c = load(&repo().join(name)).unwrap_or_else(|e| panic!("{e}"));
+        let names: Vec<&str> = c.stages().iter().map(|s| s.name()).collect();
+        assert_eq!(names, ["planar", "full"], "{name}");
+        assert_eq!(c.init_source(1), Some(0));
+        let (planar, full) = (&c.stages()[0], &c.stages()[1]);
+        assert_eq!(feature_names(planar).action_names.len(), 10);
+        assert_eq!(feature_names(full).action_names.len(), 12);
+        assert_eq!(full.domain_randomization.params().len(), 12, "{name}: stage 2 uses the whole DR table");
+    }
+}

@@ -1,0 +1,875 @@
+"""Typed configuration of one curriculum stage, parsed from the stage table of the curriculum.
+
+The curriculum TOML (docs/contracts.md, "Curriculum TOML") is parsed and type-checked by the
+Rust CLI; what reaches Python is the stage table as a dict. `StageConfig.from_dict` turns it
+into frozen dataclasses so that the environment and the learner never look up string keys at
+run time, and so that every name (joint, scenario, reward term, DR parameter) is checked once,
+here, with an error that names the offending value and lists the valid ones.
+
+`check_stage` collects *all* problems (for the CLI, which maps each key path to a TOML line);
+`from_dict` raises the first one as `ConfigError`.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from typing import Any, Mapping, Sequence
+
+from jax_env import robot
+
+# ---------------------------------------------------------------------------------------------
+# Static vocabularies (docs/contracts.md, "Robot names").
+
+JOINT_NAMES: tuple[str, ...] = tuple(robot.JOINT_NAMES)
+BODY_NAMES: tuple[str, ...] = tuple(robot.BODY_NAMES)
+CONTACT_BODIES: tuple[str, ...] = tuple(robot.CONTACT_BODIES)
+KEYFRAMES: tuple[str, ...] = tuple(robot.KEYFRAME_NAMES)
+SAGITTAL_JOINTS: tuple[str, ...] = tuple(robot.SAGITTAL_JOINTS)
+LATERAL_JOINTS: tuple[str, ...] = tuple(robot.LATERAL_JOINTS)
+
+KSI_SCENARIOS: tuple[str, ...] = ("ksi_prone_1", "ksi_prone_2", "ksi_prone_3", "ksi_supine_1",
+                                  "ksi_supine_2", "ksi_supine_3")
+SCENARIOS: tuple[str, ...] = KSI_SCENARIOS + ("supine", "prone", "lateral", "sitting",
+                                              "crossed_legs", "random_drop")
+TERRAINS: tuple[str, ...] = ("flat", "slope", "obstacle")
+REWARD_TERMS: tuple[str, ...] = ("survival", "base_height", "standing", "orientation",
+                                 "dof_pos_ref", "torques", "dof_vel", "dof_acc", "root_acc",
+                                 "action_rate", "dof_pos_limits", "torque_fatigue", "power",
+                                 "hip_roll")
+DR_PARAMS: tuple[str, ...] = ("dof_position", "base_xy_position", "base_linear_velocity",
+                              "joint_stiffness", "joint_damping", "terrain_friction",
+                              "terrain_compliance", "terrain_restitution", "torso_com",
+                              "torso_mass", "other_com", "other_mass")
+DR_OPERATIONS: tuple[str, ...] = ("additive", "scaling")
+DR_DISTRIBUTIONS: tuple[str, ...] = ("gaussian", "uniform")
+ACTION_MAPPINGS: tuple[str, ...] = ("current", "default")
+LR_SCHEDULES: tuple[str, ...] = ("fixed", "adaptive_kl")
+ACTIVATIONS: tuple[str, ...] = ("elu", "swish", "tanh", "relu")
+ON_MISS: tuple[str, ...] = ("stop", "continue")
+
+_SUM_TOLERANCE = 1e-6
+
+
+def mirror_joint_name(joint: str) -> str:
+  """The left/right partner of a joint (itself for centre-line joints)."""
+  return JOINT_NAMES[int(robot.JOINT_MIRROR_PERM[JOINT_NAMES.index(joint)])]
+
+
+class ConfigError(ValueError):
+  """A bad value in a stage table; `path` is relative to the stage table."""
+
+  def __init__(self, path: Sequence[str | int], message: str):
+    self.path = tuple(path)
+    self.message = message
+    where = ".".join(str(p) for p in self.path) or "<stage>"
+    super().__init__(f"{where}: {message}")
+
+
+def _valid(names: Sequence[str]) -> str:
+  return "valid: " + ", ".join(names)
+
+
+# ---------------------------------------------------------------------------------------------
+# Dataclasses.
+
+
+@dataclasses.dataclass(frozen=True)
+class SimConfig:
+  timestep: float
+  ctrl_dt: float
+  episode_s: float
+
+  @property
+  def n_substeps(self) -> int:
+    return int(round(self.ctrl_dt / self.timestep))
+
+  @property
+  def episode_steps(self) -> int:
+    return int(round(self.episode_s / self.ctrl_dt))
+
+
+@dataclasses.dataclass(frozen=True)
+class ActionConfig:
+  mapping: str
+  scale: float
+  clip: float
+
+
+@dataclasses.dataclass(frozen=True)
+class ConstraintsConfig:
+  torque_limit_scale: float
+  joint_range_scale: float
+  velocity_limit_scale: float
+
+
+@dataclasses.dataclass(frozen=True)
+class ScenarioParams:
+  ksi_joint_noise: float
+  settle_s: float
+
+
+@dataclasses.dataclass(frozen=True)
+class TerrainConfig:
+  weights: Mapping[str, float]  # every terrain in TERRAINS, omitted ones 0
+  slope_max_deg: float
+
+
+@dataclasses.dataclass(frozen=True)
+class RewardParams:
+  base_height_target: float
+  base_height_sigma: float
+  hip_roll_ref: float
+
+
+@dataclasses.dataclass(frozen=True)
+class SuccessConfig:
+  height_tolerance: float
+  upright_tolerance: float
+  dof_tolerance: float
+  hold_s: float
+
+
+@dataclasses.dataclass(frozen=True)
+class DRParam:
+  """One row of the paper's DR table: gaussian range = (mean, std); uniform = (low, high)."""
+
+  range: tuple[float, float]
+  operation: str
+  distribution: str
+
+
+@dataclasses.dataclass(frozen=True)
+class DomainRandomizationConfig:
+  enabled: bool
+  params: Mapping[str, DRParam]  # only the parameters the stage names
+
+  def active(self, name: str) -> DRParam | None:
+    return self.params.get(name) if self.enabled else None
+
+
+@dataclasses.dataclass(frozen=True)
+class DelayConfig:
+  max_s: float
+
+
+@dataclasses.dataclass(frozen=True)
+class PushConfig:
+  enabled: bool
+  interval_s: tuple[float, float]
+  duration_s: float
+  force_max: float
+  torque_max: float
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+  num_envs: int
+  unroll_length: int
+  num_minibatches: int
+  update_epochs: int
+  learning_rate: float
+  lr_schedule: str
+  desired_kl: float
+  entropy_cost: float
+  clip_epsilon: float
+  value_loss_coef: float
+  discount: float
+  gae_lambda: float
+  max_grad_norm: float
+  reward_scaling: float
+  normalize_observations: bool
+  policy_hidden: tuple[int, ...]
+  value_hidden: tuple[int, ...]
+  activation: str
+  initial_action_std: float
+  checkpoint_every: int
+
+
+@dataclasses.dataclass(frozen=True)
+class RMAConfig:
+  enabled: bool
+  latent_dim: int
+  encoder_hidden: tuple[int, ...]
+  history_len: int
+  adaptation_env_steps: int
+  adaptation_learning_rate: float
+
+
+@dataclasses.dataclass(frozen=True)
+class MirrorConfig:
+  weight: float
+
+
+@dataclasses.dataclass(frozen=True)
+class AdvanceConfig:
+  env_steps: int
+  min_stand_rate: float | None
+  window: int
+  on_miss: str
+
+
+@dataclasses.dataclass(frozen=True)
+class StageConfig:
+  """One curriculum stage. Joint tuples are in canonical order, whatever the TOML's order."""
+
+  name: str
+  init_from: str
+  controlled_joints: tuple[str, ...]
+  observed_joints: tuple[str, ...]
+  sim: SimConfig
+  action: ActionConfig
+  constraints: ConstraintsConfig
+  scenarios: Mapping[str, float]  # every scenario in SCENARIOS, omitted ones 0
+  scenario_params: ScenarioParams
+  terrain: TerrainConfig
+  rewards: Mapping[str, float]  # every term in REWARD_TERMS, omitted ones 0
+  reward_params: RewardParams
+  success: SuccessConfig
+  domain_randomization: DomainRandomizationConfig
+  delay: DelayConfig
+  push: PushConfig
+  ppo: PPOConfig
+  rma: RMAConfig
+  mirror: MirrorConfig
+  advance: AdvanceConfig
+
+  @classmethod
+  def from_dict(cls, d: Mapping[str, Any]) -> "StageConfig":
+    """Parses a stage table; raises ConfigError for the first problem found."""
+    parser = _Parser()
+    stage = parser.stage(d)
+    if parser.errors:
+      path, message = parser.errors[0]
+      raise ConfigError(path, message)
+    return stage
+
+
+def check_stage(d: Mapping[str, Any]) -> list[dict]:
+  """Every problem in a stage table as [{"path": [...], "message": str}] (empty when valid)."""
+  parser = _Parser()
+  parser.stage(d)
+  return [{"path": list(p), "message": m} for p, m in parser.errors]
+
+
+# ---------------------------------------------------------------------------------------------
+# Parsing with error collection.
+
+_MISSING = object()
+
+
+class _Parser:
+  """Builds the dataclasses while collecting (path, message) errors instead of raising.
+
+  Every helper returns None for a bad value, so one pass reports all problems.
+  """
+
+  def __init__(self):
+    self.errors: list[tuple[tuple, str]] = []
+
+  def err(self, path, message):
+    self.errors.append((tuple(path), message))
+
+  # -- primitive helpers ----------------------------------------------------------------------
+
+  def table(self, d, path, required: Sequence[str], optional: Sequence[str] = ()):
+    if not isinstance(d, Mapping):
+      self.err(path, f"expected a table, got {type(d).__name__}")
+      return None
+    known = set(required) | set(optional)
+    for k in d:
+      if k not in known:
+        self.err(list(path) + [k], f"unknown key '{k}'; {_valid(list(required) + list(optional))}")
+    for k in required:
+      if k not in d:
+        self.err(list(path) + [k], f"missing required key '{k}'")
+    return d
+
+  def number(self, d, key, path, *, minimum=None, exclusive=False, maximum=None, integer=False,
+             default=_MISSING):
+    p = list(path) + [key]
+    if d is None or key not in d:
+      return None if default is _MISSING else default
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+      self.err(p, f"expected a number, got {v!r}")
+      return None
+    if integer and not (isinstance(v, int) or float(v).is_integer()):
+      self.err(p, f"expected an integer, got {v!r}")
+      return None
+    if not math.isfinite(v):
+      self.err(p, f"expected a finite number, got {v!r}")
+      return None
+    if minimum is not None and (v <= minimum if exclusive else v < minimum):
+      self.err(p, f"{v!r} must be {'>' if exclusive else '>='} {minimum}")
+      return None
+    if maximum is not None and v > maximum:
+      self.err(p, f"{v!r} must be <= {maximum}")
+      return None
+    return int(v) if integer else float(v)
+
+  def boolean(self, d, key, path):
+    if d is None or key not in d:
+      return None
+    v = d[key]
+    if not isinstance(v, bool):
+      self.err(list(path) + [key], f"expected true or false, got {v!r}")
+      return None
+    return v
+
+  def choice(self, d, key, path, choices):
+    if d is None or key not in d:
+      return None
+    v = d[key]
+    if v not in choices:
+      self.err(list(path) + [key], f"unknown value {v!r}; {_valid(choices)}")
+      return None
+    return v
+
+  def string(self, d, key, path):
+    if d is None or key not in d:
+      return None
+    v = d[key]
+    if not isinstance(v, str) or not v:
+      self.err(list(path) + [key], f"expected a non-empty string, got {v!r}")
+      return None
+    return v
+
+  def int_list(self, d, key, path):
+    if d is None or key not in d:
+      return None
+    v = d[key]
+    if not isinstance(v, (list, tuple)) or not v:
+      self.err(list(path) + [key], f"expected a non-empty list of positive integers, got {v!r}")
+      return None
+    out = []
+    for i, x in enumerate(v):
+      if isinstance(x, bool) or not isinstance(x, int) or x <= 0:
+        self.err(list(path) + [key, i], f"expected a positive integer, got {x!r}")
+        return None
+      out.append(int(x))
+    return tuple(out)
+
+  def pair(self, v, p, *, ordered=True):
+    if (not isinstance(v, (list, tuple)) or len(v) != 2
+        or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)):
+      self.err(p, f"expected [min, max] (two numbers), got {v!r}")
+      return None
+    lo, hi = float(v[0]), float(v[1])
+    if ordered and lo > hi:
+      self.err(p, f"min {lo!r} > max {hi!r}")
+      return None
+    return lo, hi
+
+  def mixture(self, d, path, names, what, extra_keys=()):
+    """Weights ≥ 0 over `names` (omitted ones 0) that sum to 1."""
+    if not isinstance(d, Mapping):
+      self.err(path, f"expected a table of {what} weights")
+      return None
+    weights = {n: 0.0 for n in names}
+    ok = True
+    for k, v in d.items():
+      if k in extra_keys:
+        continue
+      if k not in names:
+        self.err(list(path) + [k], f"unknown {what} '{k}'; {_valid(names)}")
+        ok = False
+        continue
+      w = self.number(d, k, path, minimum=0.0)
+      if w is None:
+        ok = False
+        continue
+      weights[k] = w
+    if ok:
+      total = sum(weights.values())
+      if abs(total - 1.0) > _SUM_TOLERANCE:
+        parts = " + ".join(f"{k}={w:g}" for k, w in weights.items() if w)
+        self.err(path, f"{what} weights must sum to 1, got {total:.6g} ({parts or 'nothing'})")
+        ok = False
+    return weights if ok else None
+
+  def joints(self, d, key):
+    if d is None or key not in d:
+      return None
+    v = d[key]
+    if not isinstance(v, (list, tuple)) or not v:
+      self.err([key], f"expected a non-empty list of joint names, got {v!r}")
+      return None
+    seen, ok = set(), True
+    for i, j in enumerate(v):
+      if j not in JOINT_NAMES:
+        self.err([key, i], f"unknown joint {j!r}; {_valid(JOINT_NAMES)}")
+        ok = False
+      elif j in seen:
+        self.err([key, i], f"joint {j!r} listed twice")
+        ok = False
+      seen.add(j)
+    if not ok:
+      return None
+    # Mirror maps permute features within the list, so it must hold every mirror partner.
+    for j in JOINT_NAMES:
+      if j in seen and mirror_joint_name(j) not in seen:
+        self.err([key], f"{key} contains {j} but not its mirror {mirror_joint_name(j)}; "
+                 "joint lists must be left/right symmetric")
+        ok = False
+    return tuple(j for j in JOINT_NAMES if j in seen) if ok else None
+
+  # -- sections -------------------------------------------------------------------------------
+
+  def stage(self, d) -> StageConfig | None:
+    sections = ("sim", "action", "constraints", "scenarios", "scenario_params", "terrain",
+                "rewards", "reward_params", "success", "domain_randomization", "delay", "push",
+                "ppo", "rma", "mirror", "advance")
+    if self.table(d, [], ("name", "init_from", "controlled_joints", "observed_joints")
+                  + sections) is None:
+      return None
+    name = self.string(d, "name", [])
+    init_from = self.string(d, "init_from", [])
+    controlled = self.joints(d, "controlled_joints")
+    observed = self.joints(d, "observed_joints")
+    if controlled is not None and observed is not None:
+      missing = [j for j in controlled if j not in observed]
+      if missing:
+        self.err(["observed_joints"], "observed_joints must include every controlled joint; "
+                 f"missing: {', '.join(missing)}")
+    sim = self.sim(d.get("sim"))
+    out = dict(
+        name=name, init_from=init_from, controlled_joints=controlled, observed_joints=observed,
+        sim=sim,
+        action=self.action(d.get("action")),
+        constraints=self.constraints(d.get("constraints")),
+        scenarios=self.scenarios(d.get("scenarios")),
+        scenario_params=self.scenario_params(d.get("scenario_params"), sim),
+        terrain=self.terrain(d.get("terrain")),
+        rewards=self.rewards(d.get("rewards")),
+        reward_params=self.reward_params(d.get("reward_params")),
+        success=self.success(d.get("success")),
+        domain_randomization=self.domain_randomization(d.get("domain_randomization")),
+        delay=self.delay(d.get("delay")),
+        push=self.push(d.get("push")),
+        ppo=self.ppo(d.get("ppo")),
+        rma=self.rma(d.get("rma")),
+        mirror=self.mirror(d.get("mirror")),
+        advance=self.advance(d.get("advance")),
+    )
+    if self.errors or any(v is None for v in out.values()):
+      return None
+    return StageConfig(**out)
+
+  def _section(self, d, name, required, optional=()):
+    if d is None:
+      return None  # already reported as missing by `stage`
+    return self.table(d, [name], required, optional)
+
+  def _all(self, cls, values):
+    return None if any(v is None for v in values.values()) else cls(**values)
+
+  def sim(self, d):
+    p = ["sim"]
+    d = self._section(d, "sim", ("timestep", "ctrl_dt", "episode_s"))
+    timestep = self.number(d, "timestep", p, minimum=0.0, exclusive=True)
+    ctrl_dt = self.number(d, "ctrl_dt", p, minimum=0.0, exclusive=True)
+    episode_s = self.number(d, "episode_s", p, minimum=0.0, exclusive=True)
+    if timestep and ctrl_dt:
+      ratio = ctrl_dt / timestep
+      if ratio < 1.0 - 1e-9 or abs(ratio - round(ratio)) > 1e-6:
+        self.err(p + ["ctrl_dt"], f"ctrl_dt {ctrl_dt!r} must be an integer multiple of "
+                 f"timestep {timestep!r}")
+        ctrl_dt = None
+    if ctrl_dt and episode_s is not None and episode_s <= ctrl_dt:
+      self.err(p + ["episode_s"], f"episode_s {episode_s!r} must be > ctrl_dt {ctrl_dt!r}")
+      episode_s = None
+    return self._all(SimConfig, dict(timestep=timestep, ctrl_dt=ctrl_dt, episode_s=episode_s))
+
+  def action(self, d):
+    p = ["action"]
+    d = self._section(d, "action", ("mapping", "scale", "clip"))
+    return self._all(ActionConfig, dict(
+        mapping=self.choice(d, "mapping", p, ACTION_MAPPINGS),
+        scale=self.number(d, "scale", p, minimum=0.0, exclusive=True),
+        clip=self.number(d, "clip", p, minimum=0.0, exclusive=True)))
+
+  def constraints(self, d):
+    p = ["constraints"]
+    keys = ("torque_limit_scale", "joint_range_scale", "velocity_limit_scale")
+    d = self._section(d, "constraints", keys)
+    return self._all(ConstraintsConfig,
+                     {k: self.number(d, k, p, minimum=0.0, exclusive=True) for k in keys})
+
+  def scenarios(self, d):
+    if d is None:
+      return None
+    if isinstance(d, Mapping):
+      # Key-state scenarios are named after keyframes: say so when the name is unknown.
+      for k in d:
+        if k.startswith("ksi_") and k not in SCENARIOS:
+          self.err(["scenarios", k], f"unknown scenario '{k}': no keyframe '{k}' in the model "
+                   f"(keyframes: {', '.join(KEYFRAMES)}); {_valid(SCENARIOS)}")
+      d = {k: v for k, v in d.items() if not (k.startswith("ksi_") and k not in SCENARIOS)}
+    return self.mixture(d, ["scenarios"], SCENARIOS, "scenario")
+
+  def scenario_params(self, d, sim):
+    p = ["scenario_params"]
+    d = self._section(d, "scenario_params", ("ksi_joint_noise", "settle_s"))
+    settle = self.number(d, "settle_s", p, minimum=0.0)
+    if settle is not None and sim is not None and settle >= sim.episode_s:
+      self.err(p + ["settle_s"], f"settle_s {settle!r} must be < episode_s {sim.episode_s!r}")
+      settle = None
+    return self._all(ScenarioParams, dict(
+        ksi_joint_noise=self.number(d, "ksi_joint_noise", p, minimum=0.0), settle_s=settle))
+
+  def terrain(self, d):
+    if d is None:
+      return None
+    p = ["terrain"]
+    if "slope_max_deg" not in d:
+      self.err(p + ["slope_max_deg"], "missing required key 'slope_max_deg'")
+    slope = self.number(d, "slope_max_deg", p, minimum=0.0, maximum=30.0)
+    weights = self.mixture(d, p, TERRAINS, "terrain", extra_keys=("slope_max_deg",))
+    return self._all(TerrainConfig, dict(weights=weights, slope_max_deg=slope))
+
+  def rewards(self, d):
+    if d is None:
+      return None
+    if not isinstance(d, Mapping):
+      self.err(["rewards"], "expected a table of reward weights")
+      return None
+    weights = {t: 0.0 for t in REWARD_TERMS}
+    ok = True
+    for k in d:
+      if k not in REWARD_TERMS:
+        self.err(["rewards", k], f"unknown reward term '{k}'; {_valid(REWARD_TERMS)}")
+        ok = False
+        continue
+      w = self.number(d, k, ["rewards"])
+      if w is None:
+        ok = False
+      else:
+        weights[k] = w
+    return weights if ok else None
+
+  def reward_params(self, d):
+    p = ["reward_params"]
+    d = self._section(d, "reward_params",
+                      ("base_height_target", "base_height_sigma", "hip_roll_ref"))
+    return self._all(RewardParams, dict(
+        base_height_target=self.number(d, "base_height_target", p, minimum=0.0, exclusive=True),
+        base_height_sigma=self.number(d, "base_height_sigma", p, minimum=0.0, exclusive=True),
+        hip_roll_ref=self.number(d, "hip_roll_ref", p)))
+
+  def success(self, d):
+    p = ["success"]
+    keys = ("height_tolerance", "upright_tolerance", "dof_tolerance", "hold_s")
+    d = self._section(d, "success", keys)
+    return self._all(SuccessConfig,
+                     {k: self.number(d, k, p, minimum=0.0, exclusive=True) for k in keys})
+
+  def domain_randomization(self, d):
+    if d is None:
+      return None
+    p = ["domain_randomization"]
+    if not isinstance(d, Mapping):
+      self.err(p, "expected a table")
+      return None
+    if "enabled" not in d:
+      self.err(p + ["enabled"], "missing required key 'enabled'")
+    enabled = self.boolean(d, "enabled", p)
+    params, ok = {}, True
+    for k, v in d.items():
+      if k == "enabled":
+        continue
+      if k not in DR_PARAMS:
+        self.err(p + [k], f"unknown domain-randomization parameter '{k}'; {_valid(DR_PARAMS)}")
+        ok = False
+        continue
+      q = p + [k]
+      t = self.table(v, q, ("range", "operation", "distribution"))
+      if t is None or any(x not in t for x in ("range", "operation", "distribution")):
+        ok = False
+        continue
+      op = self.choice(t, "operation", q, DR_OPERATIONS)
+      dist = self.choice(t, "distribution", q, DR_DISTRIBUTIONS)
+      rng = self.pair(t["range"], q + ["range"], ordered=(dist != "gaussian"))
+      if dist == "gaussian" and rng is not None and rng[1] < 0:
+        self.err(q + ["range"], f"gaussian range is [mean, std]; std {rng[1]!r} must be >= 0")
+        rng = None
+      if op is None or dist is None or rng is None:
+        ok = False
+        continue
+      params[k] = DRParam(range=rng, operation=op, distribution=dist)
+    if enabled is None or not ok:
+      return None
+    return DomainRandomizationConfig(enabled=enabled, params=params)
+
+  def delay(self, d):
+    d = self._section(d, "delay", ("max_s",))
+    return self._all(DelayConfig, dict(max_s=self.number(d, "max_s", ["delay"], minimum=0.0)))
+
+  def push(self, d):
+    p = ["push"]
+    d = self._section(d, "push", ("enabled", "interval_s", "duration_s", "force_max",
+                                  "torque_max"))
+    interval = None
+    if d is not None and "interval_s" in d:
+      interval = self.pair(d["interval_s"], p + ["interval_s"])
+      if interval is not None and interval[0] <= 0:
+        self.err(p + ["interval_s"], f"push interval min {interval[0]!r} must be > 0")
+        interval = None
+    return self._all(PushConfig, dict(
+        enabled=self.boolean(d, "enabled", p), interval_s=interval,
+        duration_s=self.number(d, "duration_s", p, minimum=0.0),
+        force_max=self.number(d, "force_max", p, minimum=0.0),
+        torque_max=self.number(d, "torque_max", p, minimum=0.0)))
+
+  def ppo(self, d):
+    p = ["ppo"]
+    ints = ("num_envs", "unroll_length", "num_minibatches", "update_epochs", "checkpoint_every")
+    pos = ("learning_rate", "desired_kl", "clip_epsilon", "reward_scaling", "initial_action_std")
+    nonneg = ("entropy_cost", "value_loss_coef", "max_grad_norm")
+    unit = ("discount", "gae_lambda")
+    d = self._section(d, "ppo", ints + pos + nonneg + unit + (
+        "lr_schedule", "normalize_observations", "policy_hidden", "value_hidden", "activation"))
+    v = {k: self.number(d, k, p, minimum=0, exclusive=True, integer=True) for k in ints}
+    v.update({k: self.number(d, k, p, minimum=0.0, exclusive=True) for k in pos})
+    v.update({k: self.number(d, k, p, minimum=0.0) for k in nonneg})
+    v.update({k: self.number(d, k, p, minimum=0.0, maximum=1.0) for k in unit})
+    v.update(lr_schedule=self.choice(d, "lr_schedule", p, LR_SCHEDULES),
+             normalize_observations=self.boolean(d, "normalize_observations", p),
+             policy_hidden=self.int_list(d, "policy_hidden", p),
+             value_hidden=self.int_list(d, "value_hidden", p),
+             activation=self.choice(d, "activation", p, ACTIVATIONS))
+    return self._all(PPOConfig, v)
+
+  def rma(self, d):
+    p = ["rma"]
+    d = self._section(d, "rma", ("enabled", "latent_dim", "encoder_hidden", "history_len",
+                                 "adaptation_env_steps", "adaptation_learning_rate"))
+    return self._all(RMAConfig, dict(
+        enabled=self.boolean(d, "enabled", p),
+        latent_dim=self.number(d, "latent_dim", p, minimum=0, exclusive=True, integer=True),
+        encoder_hidden=self.int_list(d, "encoder_hidden", p),
+        history_len=self.number(d, "history_len", p, minimum=0, exclusive=True, integer=True),
+        adaptation_env_steps=self.number(d, "adaptation_env_steps", p, minimum=0, integer=True),
+        adaptation_learning_rate=self.number(d, "adaptation_learning_rate", p, minimum=0.0,
+                                             exclusive=True)))
+
+  def mirror(self, d):
+    d = self._section(d, "mirror", ("weight",))
+    return self._all(MirrorConfig, dict(weight=self.number(d, "weight", ["mirror"], minimum=0.0)))
+
+  def advance(self, d):
+    p = ["advance"]
+    d = self._section(d, "advance", ("env_steps", "window", "on_miss"), ("min_stand_rate",))
+    if d is None:
+      return None
+    values = dict(
+        env_steps=self.number(d, "env_steps", p, minimum=0, exclusive=True, integer=True),
+        window=self.number(d, "window", p, minimum=0, exclusive=True, integer=True),
+        on_miss=self.choice(d, "on_miss", p, ON_MISS))
+    if any(v is None for v in values.values()):
+      return None
+    rate = None
+    if "min_stand_rate" in d:
+      rate = self.number(d, "min_stand_rate", p, minimum=0.0, maximum=1.0)
+      if rate is None:
+        return None
+    return AdvanceConfig(min_stand_rate=rate, **values)
+
+
+# ---------------------------------------------------------------------------------------------
+# Feature names (docs/contracts.md, "Feature names").
+
+
+def _as_stage(stage) -> StageConfig:
+  return stage if isinstance(stage, StageConfig) else StageConfig.from_dict(stage)
+
+
+def privileged_names() -> tuple[str, ...]:
+  """Static: the same list in every stage, so the critic and encoder inputs never change size
+  for a reason other than the observed/controlled joints."""
+  names = ["friction", "compliance", "restitution"]
+  names += [f"mass_scale/{b}" for b in BODY_NAMES]
+  names += [f"com_offset/{b}/{a}" for b in BODY_NAMES for a in "xyz"]
+  names += [f"kp_scale/{j}" for j in JOINT_NAMES]
+  names += [f"kd_scale/{j}" for j in JOINT_NAMES]
+  names += ["torque_limit_scale", "delay"]
+  names += ["base_height", "base_lin_vel/x", "base_lin_vel/y", "base_lin_vel/z"]
+  names += [f"contact/{b}" for b in CONTACT_BODIES]
+  names += [f"push_force/{a}" for a in "xyz"] + [f"push_torque/{a}" for a in "xyz"]
+  names += ["terrain/slope_x", "terrain/slope_y", "terrain/obstacle"]
+  return tuple(names)
+
+
+def _mirror_body(body: str) -> str:
+  return BODY_NAMES[int(robot.BODY_MIRROR_PERM[BODY_NAMES.index(body)])]
+
+
+_VEC_SIGN = {"x": 1.0, "y": -1.0, "z": 1.0}  # true vectors under the y -> -y reflection
+_PSEUDO_SIGN = {"x": -1.0, "y": 1.0, "z": -1.0}  # angular velocities, torques
+
+
+def mirror_feature(name: str, kind: str = "obs") -> tuple[str, float]:
+  """The left/right mirror of a feature: (mirrored feature's name, sign).
+
+  mirror(x)[i] = sign_i · x[index of name_i's mirror]. Joints swap sides and flip sign for roll
+  and yaw axes (robot.JOINT_MIRROR_SIGN); bodies swap sides; lateral components of vectors
+  (gravity y, base velocity y, CoM offset y, push force y, slope_y) and the x/z components of
+  pseudo-vectors (angular velocity, push torque) flip sign. `kind="action"` reads bare joint
+  names.
+  """
+  if kind == "action":
+    j = JOINT_NAMES.index(name)
+    return mirror_joint_name(name), float(robot.JOINT_MIRROR_SIGN[j])
+  parts = name.split("/")
+  head = parts[0]
+  if head in ("joint_pos", "joint_vel", "prev_action"):
+    j = JOINT_NAMES.index(parts[1])
+    return f"{head}/{mirror_joint_name(parts[1])}", float(robot.JOINT_MIRROR_SIGN[j])
+  if head in ("kp_scale", "kd_scale"):
+    return f"{head}/{mirror_joint_name(parts[1])}", 1.0
+  if head in ("gravity", "base_lin_vel", "push_force"):
+    return name, _VEC_SIGN[parts[1]]
+  if head in ("ang_vel", "push_torque"):
+    return name, _PSEUDO_SIGN[parts[1]]
+  if head in ("mass_scale", "contact"):
+    return f"{head}/{_mirror_body(parts[1])}", 1.0
+  if head == "com_offset":
+    return f"com_offset/{_mirror_body(parts[1])}/{parts[2]}", _VEC_SIGN[parts[2]]
+  if name == "terrain/slope_y":
+    return name, -1.0
+  return name, 1.0  # scalars unchanged by the reflection
+
+
+def mirror_map(names: Sequence[str], kind: str = "obs"):
+  """(perm int32, sign float32) with mirror(x) = x[..., perm] * sign over a feature list."""
+  import numpy as np
+  index = {n: i for i, n in enumerate(names)}
+  perm, sign = [], []
+  for n in names:
+    m, s = mirror_feature(n, kind)
+    if m not in index:
+      raise ValueError(f"feature {n!r} mirrors to {m!r}, which is not in the list")
+    perm.append(index[m])
+    sign.append(s)
+  return np.array(perm, np.int32), np.array(sign, np.float32)
+
+
+def feature_names(stage) -> tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]:
+  """(obs_names, privileged_names, action_names) of a stage (StageConfig or stage dict)."""
+  s = _as_stage(stage)
+  obs = ["gravity/x", "gravity/y", "gravity/z", "ang_vel/x", "ang_vel/y", "ang_vel/z"]
+  obs += [f"joint_pos/{j}" for j in s.observed_joints]
+  obs += [f"joint_vel/{j}" for j in s.observed_joints]
+  obs += [f"prev_action/{j}" for j in s.controlled_joints]
+  return tuple(obs), privileged_names(), tuple(s.controlled_joints)
+
+
+# ---------------------------------------------------------------------------------------------
+# Default stages (the paper's two stages at test scale).
+
+# The paper's DR table (Table "Domain Randomization Parameters"), verbatim.
+PAPER_DR: dict[str, dict] = {
+    "dof_position": {"range": [0.0, 0.05], "operation": "additive", "distribution": "gaussian"},
+    "base_xy_position": {"range": [-1.0, 1.0], "operation": "additive",
+                         "distribution": "uniform"},
+    "base_linear_velocity": {"range": [0.0, 0.1], "operation": "additive",
+                             "distribution": "gaussian"},
+    "joint_stiffness": {"range": [0.95, 1.05], "operation": "scaling", "distribution": "uniform"},
+    "joint_damping": {"range": [0.95, 1.05], "operation": "scaling", "distribution": "uniform"},
+    "terrain_friction": {"range": [0.1, 2.0], "operation": "additive", "distribution": "uniform"},
+    "terrain_compliance": {"range": [0.5, 1.5], "operation": "additive",
+                           "distribution": "uniform"},
+    "terrain_restitution": {"range": [0.1, 0.9], "operation": "additive",
+                            "distribution": "uniform"},
+    "torso_com": {"range": [-0.1, 0.1], "operation": "additive", "distribution": "uniform"},
+    "torso_mass": {"range": [0.8, 1.2], "operation": "scaling", "distribution": "uniform"},
+    "other_com": {"range": [-0.005, 0.005], "operation": "additive", "distribution": "uniform"},
+    "other_mass": {"range": [0.98, 1.02], "operation": "scaling", "distribution": "uniform"},
+}
+
+_PENALTIES = {
+    # Per control step (50 Hz). Penalties are negative weights; magnitudes are sized so that
+    # each term contributes O(0.01–0.1) per step in a typical get-up.
+    "orientation": -1.0,
+    "dof_pos_ref": -0.05,
+    "torques": -1e-5,
+    "dof_vel": -1e-3,
+    "dof_acc": -1e-7,
+    "root_acc": -1e-4,
+    "action_rate": -0.01,
+    "dof_pos_limits": -1.0,
+    "torque_fatigue": -0.01,
+    "power": -1e-3,
+    "hip_roll": -0.5,
+}
+
+
+def default_stage_dict(kind: str) -> dict:
+  """A complete, valid stage table: "planar" (stage 1) or "full" (stage 2).
+
+  Values follow the paper: stage 1 is planar (sagittal joints, key states + supine/prone, lenient
+  constraints: 1.2× range, 1.5× torque and velocity), stage 2 adds hip roll, 3D falls, terrain,
+  the robot's real limits and every DR row. The action mapping is "current" (target = q +
+  scale·a): for get-up the pose changes by radians, and offsets from the current pose keep the
+  useful action range small everywhere (Playground's and mjlab's get-up tasks found it to work
+  better than offsets from a fixed default). Learner sizes are small (tests); real curricula set
+  their own.
+  """
+  if kind not in ("planar", "full"):
+    raise ValueError(f"unknown default stage kind {kind!r}; valid: planar, full")
+  planar = kind == "planar"
+  controlled = list(SAGITTAL_JOINTS) if planar else list(SAGITTAL_JOINTS) + list(LATERAL_JOINTS)
+  controlled = [j for j in JOINT_NAMES if j in controlled]
+  observed = list(controlled) if planar else list(JOINT_NAMES)
+  if planar:
+    scenarios = {k: 0.1 for k in KSI_SCENARIOS} | {"supine": 0.2, "prone": 0.2}
+    terrain = {"flat": 1.0, "slope_max_deg": 0.0}
+    dr_names = ("dof_position", "joint_stiffness", "joint_damping", "terrain_friction",
+                "torso_mass", "other_mass")
+    penalty_scale = 0.1  # lenient: explore first, smooth later
+  else:
+    scenarios = ({k: 0.05 for k in KSI_SCENARIOS}
+                 | {"supine": 0.1, "prone": 0.1, "lateral": 0.1, "sitting": 0.1,
+                    "crossed_legs": 0.1, "random_drop": 0.2})
+    terrain = {"flat": 0.6, "slope": 0.3, "obstacle": 0.1, "slope_max_deg": 10.0}
+    dr_names = DR_PARAMS
+    penalty_scale = 1.0
+  rewards = {"survival": 0.1, "base_height": 1.0, "standing": 2.0}
+  rewards |= {k: w * penalty_scale for k, w in _PENALTIES.items()}
+  return {
+      "name": kind,
+      "init_from": "none" if planar else "previous",
+      "controlled_joints": controlled,
+      "observed_joints": observed,
+      "sim": {"timestep": 0.005, "ctrl_dt": 0.02, "episode_s": 6.0 if planar else 8.0},
+      "action": {"mapping": "current", "scale": 0.5, "clip": 1.0},
+      "constraints": ({"torque_limit_scale": 1.5, "joint_range_scale": 1.2,
+                       "velocity_limit_scale": 1.5} if planar else
+                      {"torque_limit_scale": 1.0, "joint_range_scale": 1.0,
+                       "velocity_limit_scale": 1.0}),
+      "scenarios": scenarios,
+      "scenario_params": {"ksi_joint_noise": 0.05, "settle_s": 1.0},
+      "terrain": terrain,
+      "rewards": rewards,
+      "reward_params": {"base_height_target": 0.67, "base_height_sigma": 20.0,
+                        "hip_roll_ref": 0.0},
+      "success": {"height_tolerance": 0.05, "upright_tolerance": 0.1, "dof_tolerance": 0.3,
+                  "hold_s": 1.0},
+      "domain_randomization": {"enabled": True} | {k: copy.deepcopy(PAPER_DR[k])
+                                                   for k in dr_names},
+      "delay": {"max_s": 0.0 if planar else 0.02},
+      "push": {"enabled": not planar, "interval_s": [2.0, 4.0], "duration_s": 0.2,
+               "force_max": 100.0, "torque_max": 10.0},
+      "ppo": {"num_envs": 8, "unroll_length": 4, "num_minibatches": 2, "update_epochs": 1,
+              "learning_rate": 3e-4, "lr_schedule": "adaptive_kl", "desired_kl": 0.01,
+              "entropy_cost": 0.005, "clip_epsilon": 0.2, "value_loss_coef": 0.5,
+              "discount": 0.97, "gae_lambda": 0.95, "max_grad_norm": 1.0,
+              "reward_scaling": 1.0, "normalize_observations": True,
+              "policy_hidden": [32, 32], "value_hidden": [32, 32], "activation": "elu",
+              "initial_action_std": 1.0, "checkpoint_every": 50},
+      "rma": {"enabled": True, "latent_dim": 8, "encoder_hidden": [32], "history_len": 10,
+              "adaptation_env_steps": 256, "adaptation_learning_rate": 1e-3},
+      "mirror": {"weight": 0.5},
+      "advance": {"env_steps": 1024, "min_stand_rate": 0.8, "window": 5, "on_miss": "continue"},
+  }

@@ -1,0 +1,371 @@
+"""The fall-recovery environment of the Booster T1 (docs/contracts.md, "Environment API").
+
+Batched natively: every array in `EnvState` has a leading batch axis and `reset`/`step` are pure
+functions of (state, action) that jit as they are (no outer vmap). Physics is read only through
+`PhysicsView` and driven through `ModelParams`, so the MJX and the native C MuJoCo backends are
+interchangeable by name.
+
+One control step:
+  1. actions → PD targets of the controlled joints ("current": q + scale·a, "default":
+     q_stand + scale·a); every other joint is held at its `stand` value; while the episode is
+     still settling, actions are ignored and the initial joint targets are held;
+  2. targets are clamped by the velocity limit (randomization.velocity_limited_target) and the
+     stage's joint range, then enter a short history from which each physics substep takes the
+     target that was issued at least `delay` earlier (the per-episode control delay);
+  3. a push (force and torque on the Trunk) is applied where one is scheduled;
+  4. physics runs ctrl_dt / timestep substeps;
+  5. observations, privileged features, rewards and the success detector read the new view;
+  6. episodes that reached the time limit or blew up numerically (NaN) are reset with a fresh
+     draw (scenario, randomization, delay, terrain) in the same step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from jax_env import config as config_lib
+from jax_env import rewards as rewards_lib
+from jax_env import robot
+from jax_env.config import SCENARIOS, StageConfig
+from jax_env.kinematics import Kinematics, rotate_inverse
+from jax_env.physics import make_backend
+from jax_env.physics.view import PhysicsView
+from jax_env.randomization import (EpisodeDraw, PushState, Pusher, Randomizer,
+                                   constrained_model, delayed_ctrl,
+                                   velocity_limited_target)
+from jax_env.scenarios import ScenarioSampler
+
+# A state whose joint or base speed exceeds this (rad/s or m/s) has blown up numerically.
+BLOWUP_SPEED = 1e3
+
+
+@dataclasses.dataclass(frozen=True)
+class MirrorMaps:
+  """mirror(x) = x[..., perm] * sign for each feature list; every map is an involution."""
+
+  obs_perm: np.ndarray
+  obs_sign: np.ndarray
+  privileged_perm: np.ndarray
+  privileged_sign: np.ndarray
+  action_perm: np.ndarray
+  action_sign: np.ndarray
+
+
+@struct.dataclass
+class EnvState:
+  """The batched state of the environment (every array has a leading axis B)."""
+
+  physics: Any
+  draw: EpisodeDraw
+  obs: jax.Array  # [B, n_obs]
+  privileged: jax.Array  # [B, n_priv]
+  reward: jax.Array  # [B]
+  done: jax.Array  # [B] float 0/1: the episode ended at this step (already auto-reset)
+  truncation: jax.Array  # [B] float 0/1: the end was the time limit
+  control_active: jax.Array  # [B] float 0/1: actions take effect in the next step
+  metrics: dict  # "reward/<term>", "standing": [B]
+  episode_metrics: dict  # "success", "recovery_time", "return", "scenario": valid where done
+  step_count: jax.Array  # [B] int32 control steps since the episode start
+  control_start: jax.Array  # [B] int32 first controlled step (settling before it)
+  scenario: jax.Array  # [B] int32 index into config.SCENARIOS
+  targets: jax.Array  # [B, K, nu] issued PD targets, newest first (for the delay)
+  hold_target: jax.Array  # [B, nu] initial joint targets held while settling
+  last_action: jax.Array  # [B, nA] the action that took effect in the last step (0 if none)
+  prev_action: jax.Array  # [B, nA] the one before
+  prev_qvel: jax.Array  # [B, nv] for finite-difference accelerations
+  push: PushState
+  push_active: jax.Array  # [B] bool, a push acted during the last step
+  success: rewards_lib.SuccessState
+  episode_return: jax.Array  # [B]
+  rng: jax.Array  # [B] per-env PRNG keys
+
+
+class FallRecoveryEnv:
+  """Booster T1 fall recovery for one curriculum stage."""
+
+  def __init__(self, stage: StageConfig | dict, backend: str = "mjx", mj_model=None):
+    if not isinstance(stage, StageConfig):
+      stage = StageConfig.from_dict(stage)
+    self.stage = stage
+    base_model = robot.load_model() if mj_model is None else mj_model
+    self.mj_model = constrained_model(stage, base_model)
+    # Resets never read derived physics quantities (see `_start`), so MJX may skip the forward
+    # pass at init: that keeps a second copy of the MJX pipeline out of the step's compile.
+    self.backend = make_backend(backend, self.mj_model,
+                                **({"forward_on_init": False} if backend == "mjx" else {}))
+    m = self.mj_model
+
+    self.obs_names, self.privileged_names, self.action_names = config_lib.feature_names(stage)
+    self.obs_size, self.privileged_size = len(self.obs_names), len(self.privileged_names)
+    self.action_size = len(self.action_names)
+    self.ctrl_dt = stage.sim.ctrl_dt
+    self.n_substeps = stage.sim.n_substeps
+    self.episode_steps = stage.sim.episode_steps
+    self.settle_steps = int(round(stage.scenario_params.settle_s / self.ctrl_dt))
+    self.hold_steps = max(int(math.ceil(stage.success.hold_s / self.ctrl_dt - 1e-9)), 1)
+    self.mirror = MirrorMaps(
+        *config_lib.mirror_map(self.obs_names),
+        *config_lib.mirror_map(self.privileged_names),
+        *config_lib.mirror_map(self.action_names, kind="action"))
+
+    # Ids and constants, cached once by name.
+    j = {n: i for i, n in enumerate(robot.JOINT_NAMES)}
+    self.ctrl_idx = np.array([j[n] for n in stage.controlled_joints], np.int32)
+    self.obs_idx = np.array([j[n] for n in stage.observed_joints], np.int32)
+    self.observed_mask = np.zeros(robot.NUM_JOINTS, np.float32)
+    self.observed_mask[self.obs_idx] = 1.0
+    self.hip_roll_idx = np.array([j["Left_Hip_Roll"], j["Right_Hip_Roll"]], np.int32)
+    self.trunk = int(m.body("Trunk").id)
+    stand_qpos, _ = robot.keyframe(m, "stand")
+    self.q_stand = np.asarray(stand_qpos[7:], np.float32)
+    self.stand_height = float(stand_qpos[2])
+    real = robot.joint_arrays(base_model)
+    self.real_lo = real.range_low.astype(np.float32)
+    self.real_hi = real.range_high.astype(np.float32)
+    self.real_torque_limit = real.torque_limit.astype(np.float32)
+    jnt = np.array([m.joint(n).id for n in robot.JOINT_NAMES])
+    self.lo = np.asarray(m.jnt_range[jnt, 0], np.float32)
+    self.hi = np.asarray(m.jnt_range[jnt, 1], np.float32)
+    self.v_max = (robot.VELOCITY_LIMITS * stage.constraints.velocity_limit_scale
+                  ).astype(np.float32)
+    self.gyro = robot.sensor_slice(m, robot.GYRO_SENSOR)
+    self.contact_adr = np.array([robot.sensor_slice(m, s).start
+                                 for s in robot.CONTACT_SENSOR_NAMES], np.int32)
+
+    # Floor contact of each contact body at a reset, from the cheap kinematics (see `_start`).
+    self.kin = Kinematics(m)
+    geom_body = [int(m.geom_bodyid[g]) for g in self.kin.geom_ids]
+    self.contact_geoms = np.array([[geom_body[i] == m.body(b).id for i in range(len(geom_body))]
+                                   for b in robot.CONTACT_BODIES])
+    self.randomizer = Randomizer(stage, m)
+    self.pusher = Pusher(stage)
+    self.sampler = ScenarioSampler(stage, m, self.randomizer)
+    # Targets must be kept long enough to serve the longest delay.
+    max_delay = self.randomizer.max_delay_substeps
+    self.target_history = int(math.ceil(max_delay / self.n_substeps)) + 1
+
+  # -------------------------------------------------------------------------------------------
+  # Reset.
+
+  def reset(self, keys: jax.Array, scenario: str | jax.Array | None = None) -> EnvState:
+    """Fresh episodes from per-env keys [B] (jax.random.split(key, B)).
+
+    `scenario` forces one scenario (a name from config.SCENARIOS) or per-env indices [B] into
+    config.SCENARIOS (−1: draw from the mixture); by default every env draws from the stage's
+    mixture. Forcing is for evaluation; training and every auto-reset use the mixture.
+    """
+    if isinstance(scenario, str):
+      if scenario not in SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}; valid: {', '.join(SCENARIOS)}")
+      scenario = jnp.full(keys.shape[:1], SCENARIOS.index(scenario), jnp.int32)
+    return self._reset(keys, scenario)
+
+  def reset_to(self, keys: jax.Array, qpos: jax.Array, qvel: jax.Array,
+               settle: bool = False) -> EnvState:
+    """Episodes starting from a given state [B, nq], [B, nv] (DR parameters still drawn).
+
+    Used by evaluation and tests to start from poses outside the scenario list (e.g. `stand`).
+    """
+    keys, k_draw, _ = self._split(keys, 3)
+    draw = self._draw(k_draw)
+    batch = keys.shape[0]
+    mocap = jnp.broadcast_to(self.sampler.park, (batch, self.mj_model.nmocap, 3))
+    settles = jnp.full((batch,), settle)
+    return self._start(keys, draw, qpos, qvel, mocap, jnp.full((batch,), -1, jnp.int32),
+                       settles)
+
+  def _split(self, keys, n):
+    out = jax.vmap(lambda k: jax.random.split(k, n))(keys)
+    return tuple(out[:, i] for i in range(n))
+
+  def _draw(self, keys) -> EpisodeDraw:
+    draw = jax.vmap(lambda k: self.randomizer.draw(k, 1))(keys)
+    return jax.tree_util.tree_map(lambda x: x[:, 0], draw)
+
+  def _reset(self, keys, scenario=None) -> EnvState:
+    keys, k_draw, k_scn = self._split(keys, 3)
+    draw = self._draw(k_draw)
+    init = self.sampler.sample(k_scn, draw, scenario)
+    return self._start(keys, draw, init.qpos, init.qvel, init.mocap_pos, init.scenario,
+                       init.settles)
+
+  def _start(self, keys, draw, qpos, qvel, mocap, scenario, settles) -> EnvState:
+    batch = qpos.shape[0]
+    keys, k_push = self._split(keys, 2)
+    qpos = qpos.astype(jnp.float32)
+    qvel = qvel.astype(jnp.float32)
+    physics = self.backend.init(qpos, qvel, draw.params, mocap)
+    control_start = jnp.where(settles, self.settle_steps, 0).astype(jnp.int32)
+    hold = qpos[:, 7:]
+    push = self.pusher.reset(k_push, control_start)
+    zeros_a = jnp.zeros((batch, self.action_size))
+    # Reset features come from qpos/qvel alone, the same for every backend: the IMU gyro of a
+    # free Trunk equals qvel[3:6] (body-frame angular velocity), and floor contact is read off
+    # the kinematics (a geom touches the floor when its lowest point is at or below it).
+    view = self._reset_view(qpos, qvel)
+    obs = self._obs(view, draw, zeros_a)
+    priv = self._privileged(view, draw, push, jnp.zeros((batch,), bool))
+    zeros = jnp.zeros((batch,))
+    return EnvState(
+        physics=physics, draw=draw, obs=obs, privileged=priv, reward=zeros, done=zeros,
+        truncation=zeros, control_active=(control_start == 0).astype(jnp.float32),
+        metrics=self._zero_metrics(batch), episode_metrics=self._zero_episode_metrics(batch),
+        step_count=jnp.zeros((batch,), jnp.int32), control_start=control_start,
+        scenario=scenario.astype(jnp.int32),
+        targets=jnp.broadcast_to(hold[:, None], (batch, self.target_history, hold.shape[-1])),
+        hold_target=hold, last_action=zeros_a, prev_action=zeros_a, prev_qvel=qvel, push=push,
+        push_active=jnp.zeros((batch,), bool), success=rewards_lib.success_init(batch),
+        episode_return=zeros, rng=keys)
+
+  def _reset_view(self, qpos, qvel) -> PhysicsView:
+    batch = qpos.shape[0]
+    low = jax.vmap(self.kin.geom_lowest)(qpos)  # [B, ngeom_robot]
+    touching = jnp.any(jnp.asarray(self.contact_geoms)[None] & (low[:, None, :] <= 1e-4), -1)
+    sensordata = jnp.zeros((batch, self.mj_model.nsensordata))
+    sensordata = sensordata.at[:, self.gyro].set(qvel[:, 3:6])
+    sensordata = sensordata.at[:, self.contact_adr].set(touching.astype(jnp.float32))
+    quat = qpos[:, 3:7] / jnp.linalg.norm(qpos[:, 3:7], axis=-1, keepdims=True)
+    xquat = jnp.zeros((batch, self.mj_model.nbody, 4)).at[:, self.trunk].set(quat)
+    z = lambda n: jnp.zeros((batch, n))
+    return PhysicsView(time=jnp.zeros((batch,)), qpos=qpos, qvel=qvel, qacc=z(self.mj_model.nv),
+                       actuator_force=z(self.mj_model.nu), sensordata=sensordata,
+                       xpos=jnp.zeros((batch, self.mj_model.nbody, 3)), xquat=xquat)
+
+  def _zero_metrics(self, batch):
+    z = jnp.zeros((batch,))
+    return {**{f"reward/{t}": z for t in rewards_lib.TERMS}, "standing": z}
+
+  def _zero_episode_metrics(self, batch):
+    z = jnp.zeros((batch,))
+    return {"success": z, "recovery_time": jnp.full((batch,), jnp.nan, jnp.float32), "return": z,
+            "scenario": z}
+
+  # -------------------------------------------------------------------------------------------
+  # Step.
+
+  def step(self, state: EnvState, action: jax.Array) -> EnvState:
+    s = self.stage
+    batch = action.shape[0]
+    a = jnp.clip(action, -s.action.clip, s.action.clip)
+    view0 = self.backend.view(state.physics)
+    q, qd = view0.qpos[:, 7:], view0.qvel[:, 6:]
+    active = state.step_count >= state.control_start
+
+    # 1-2. Targets, velocity limit, joint range, delay.
+    base = q[:, self.ctrl_idx] if s.action.mapping == "current" else self.q_stand[self.ctrl_idx]
+    target = jnp.broadcast_to(jnp.asarray(self.q_stand), q.shape)
+    target = target.at[:, self.ctrl_idx].set(base + s.action.scale * a)
+    target = velocity_limited_target(target, q, qd, state.draw.params.actuator_kp,
+                                     state.draw.params.actuator_kd, self.v_max)
+    target = jnp.clip(target, self.lo, self.hi)
+    target = jnp.where(active[:, None], target, state.hold_target)
+    history = jnp.concatenate([target[:, None], state.targets[:, :-1]], axis=1)
+    ctrl = delayed_ctrl(history, state.draw.delay_substeps, self.n_substeps)
+
+    # 3. Pushes.
+    rng, k_push, k_reset = self._split(state.rng, 3)
+    push, pushing = self.pusher.update(k_push, state.push, state.step_count)
+    xfrc = jnp.zeros((batch, self.mj_model.nbody, 6))
+    wrench = jnp.concatenate([push.force, push.torque], axis=-1) * pushing[:, None]
+    xfrc = xfrc.at[:, self.trunk].set(wrench)
+
+    # 4. Physics.
+    physics = self.backend.step(state.physics, state.draw.params, ctrl, xfrc)
+    view = self.backend.view(physics)
+
+    # 5. Observation, reward, success.
+    applied = jnp.where(active[:, None], a, 0.0)
+    x = self._quantities(view, state, applied)
+    success = rewards_lib.success_update(state.success, x.standing, state.step_count,
+                                         state.control_start, self.hold_steps, self.ctrl_dt)
+    reward, terms = rewards_lib.compute(x, s.rewards, s.reward_params)
+    gate = active.astype(jnp.float32)  # no reward while settling: the policy is not acting
+    finite = (jnp.all(jnp.isfinite(view.qpos), -1) & jnp.all(jnp.isfinite(view.qvel), -1)
+              & (jnp.max(jnp.abs(view.qvel), -1) < BLOWUP_SPEED))
+    clean = lambda r: jnp.where(finite, jnp.nan_to_num(r * gate), 0.0)
+    reward = clean(reward)
+    metrics = {k: clean(v) for k, v in terms.items()}
+    metrics["standing"] = (x.standing & active & finite).astype(jnp.float32)
+
+    step_count = state.step_count + 1
+    time_up = step_count >= self.episode_steps
+    done = time_up | ~finite
+    episode_return = state.episode_return + reward
+    episode_metrics = {
+        "success": success.success.astype(jnp.float32),
+        "recovery_time": jnp.where(success.success, success.recovery_time, jnp.nan),
+        "return": episode_return,
+        "scenario": state.scenario.astype(jnp.float32),
+    }
+    obs = self._obs(view, state.draw, applied)
+    priv = self._privileged(view, state.draw, push, pushing)
+    nxt = state.replace(
+        physics=physics, obs=obs, privileged=priv, reward=reward,
+        done=done.astype(jnp.float32), truncation=(time_up & finite).astype(jnp.float32),
+        control_active=(step_count >= state.control_start).astype(jnp.float32),
+        metrics=metrics, episode_metrics=episode_metrics, step_count=step_count,
+        targets=history[:, :self.target_history], last_action=applied,
+        prev_action=state.last_action, prev_qvel=view.qvel, push=push, push_active=pushing,
+        success=success, episode_return=episode_return, rng=rng)
+
+    # 6. Auto-reset with fresh draws, only computed when some episode ended.
+    def auto_reset(nxt):
+      fresh = self._reset(k_reset)
+      keep = dict(reward=nxt.reward, done=nxt.done, truncation=nxt.truncation,
+                  metrics=nxt.metrics, episode_metrics=nxt.episode_metrics)
+      merged = jax.tree_util.tree_map(
+          lambda new, old: jnp.where(done.reshape((-1,) + (1,) * (old.ndim - 1)), new, old),
+          fresh, nxt)
+      return merged.replace(**keep)
+
+    return jax.lax.cond(jnp.any(done), auto_reset, lambda n: n, nxt)
+
+  # -------------------------------------------------------------------------------------------
+  # Features.
+
+  def _gravity(self, view: PhysicsView, draw: EpisodeDraw) -> jax.Array:
+    g = draw.params.gravity / jnp.linalg.norm(draw.params.gravity, axis=-1, keepdims=True)
+    return rotate_inverse(view.xquat[:, self.trunk], g)
+
+  def _obs(self, view: PhysicsView, draw: EpisodeDraw, last_action) -> jax.Array:
+    q = view.qpos[:, 7:] - self.q_stand
+    qd = view.qvel[:, 6:]
+    return jnp.concatenate([
+        self._gravity(view, draw), view.sensordata[:, self.gyro],
+        q[:, self.obs_idx], qd[:, self.obs_idx], last_action], axis=-1)
+
+  def _privileged(self, view: PhysicsView, draw: EpisodeDraw, push: PushState, pushing):
+    batch = view.qpos.shape[0]
+    col = lambda x: x[:, None]
+    on = pushing[:, None].astype(jnp.float32)
+    contact = (view.sensordata[:, self.contact_adr] > 0).astype(jnp.float32)
+    tls = jnp.full((batch, 1), self.stage.constraints.torque_limit_scale)
+    return jnp.concatenate([
+        col(draw.friction), col(draw.compliance), col(draw.restitution),
+        draw.mass_scale, draw.com_offset.reshape(batch, -1),
+        draw.kp_scale, draw.kd_scale, tls, col(draw.delay_s),
+        view.qpos[:, 2:3], view.qvel[:, 0:3], contact,
+        push.force * on, push.torque * on,
+        draw.slope, col(draw.obstacle)], axis=-1)
+
+  def _quantities(self, view: PhysicsView, state: EnvState, action) -> rewards_lib.Quantities:
+    q, qd = view.qpos[:, 7:], view.qvel[:, 6:]
+    gravity = self._gravity(view, state.draw)
+    standing = rewards_lib.is_standing(view.qpos[:, 2], gravity, q, self.q_stand,
+                                       self.stand_height, self.observed_mask, self.stage.success)
+    return rewards_lib.Quantities(
+        base_height=view.qpos[:, 2], gravity=gravity, q=q, q_ref=jnp.asarray(self.q_stand),
+        qd=qd, qdd=(qd - state.prev_qvel[:, 6:]) / self.ctrl_dt,
+        root_acc=(view.qvel[:, 0:3] - state.prev_qvel[:, 0:3]) / self.ctrl_dt,
+        torque=view.actuator_force,
+        torque_limit=jnp.broadcast_to(jnp.asarray(self.real_torque_limit), q.shape),
+        range_low=jnp.asarray(self.real_lo), range_high=jnp.asarray(self.real_hi),
+        action=action, prev_action=state.last_action, prev_prev_action=state.prev_action,
+        hip_roll=q[:, self.hip_roll_idx], standing=standing)

@@ -1,0 +1,484 @@
+"""`train_stage`: one curriculum stage of PPO (+ RMA adaptation), data-parallel, resumable.
+
+The loop, per iteration (one jitted, `jax.pmap`ped call over all local devices):
+  rollout   `unroll_length` control steps of every environment (jax.lax.scan), actions sampled
+            from the Gaussian policy whose latent comes from the privileged encoder;
+  update    PPO epochs (ppo.ppo_update), gradients averaged over devices.
+Then the progress callback, then a checkpoint every `checkpoint_every` iterations. When the
+PPO budget (`advance.env_steps`) is spent or the callback answers "finish", the RMA adaptation
+phase runs for `rma.adaptation_env_steps` (rollouts acting with the adaptation module's own
+estimate, then latent regression, rma.adaptation_update), and a final checkpoint is written.
+
+Randomness comes only from the stage seed: key → (init, env reset, training); every iteration
+splits the training key into one key per device. The learner state is replicated on the
+devices, the environment batch is split across them, so the environments and their initial
+states do not depend on the device count (the sampled actions and minibatches do).
+
+Exact resume: a checkpoint holds the learner state (params.safetensors), the environment state,
+observation history and training key (rollout_state.safetensors), and the counters and phase
+(checkpoint.json, "learner"). Resuming from it runs the very same jitted computations on the
+same inputs, so on one CPU device a resumed run is bit-identical to an uninterrupted one
+(tests/python/test_learner_resume.py checks it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from jax_env.learner import checkpoint as ckpt_lib
+from jax_env.learner import mirror as mirror_lib
+from jax_env.learner import networks as nets_lib
+from jax_env.learner import ppo as ppo_lib
+from jax_env.learner import rma as rma_lib
+
+AXIS = "i"
+ANSWERS = ("continue", "finish", "interrupt")
+
+
+@dataclasses.dataclass(frozen=True)
+class LearnerConfig:
+  """What the learner reads from a stage (the ppo, rma, mirror and advance sections)."""
+
+  stage_name: str
+  ppo: Any  # config.PPOConfig
+  rma: Any  # config.RMAConfig
+  mirror_weight: float
+  env_steps: int  # the PPO budget: advance.env_steps
+  action: Mapping[str, Any]  # {"mapping", "scale", "clip"}, recorded in checkpoints
+
+  @classmethod
+  def from_stage(cls, stage) -> "LearnerConfig":
+    return cls(stage_name=stage.name, ppo=stage.ppo, rma=stage.rma,
+               mirror_weight=stage.mirror.weight, env_steps=stage.advance.env_steps,
+               action=dataclasses.asdict(stage.action))
+
+  def network_config(self, env) -> nets_lib.NetworkConfig:
+    p, r = self.ppo, self.rma
+    return nets_lib.NetworkConfig(
+        obs_size=env.obs_size, privileged_size=env.privileged_size,
+        action_size=env.action_size, policy_hidden=tuple(p.policy_hidden),
+        value_hidden=tuple(p.value_hidden), activation=p.activation, rma=bool(r.enabled),
+        latent_dim=r.latent_dim, encoder_hidden=tuple(r.encoder_hidden),
+        history_len=r.history_len, initial_action_std=p.initial_action_std)
+
+
+def seed_key(seed: int) -> jax.Array:
+  """The PRNG key of a u64 seed, both halves kept (what `jax.random.PRNGKey` does only with
+  x64 enabled; without it, seeds that differ above bit 32 would collide). Equals
+  PRNGKey(seed) for seeds below 2**32."""
+  seed = int(seed)
+  if not 0 <= seed < 2**64:
+    raise ValueError(f"seed {seed} is not a u64")
+  return jnp.asarray([seed >> 32, seed & 0xFFFFFFFF], dtype=jnp.uint32)
+
+
+class _Log:
+  """Appends timestamped lines to the run's log file (no-op without one)."""
+
+  def __init__(self, path):
+    self.path = Path(path) if path else None
+
+  def __call__(self, message: str) -> None:
+    if self.path is None:
+      return
+    stamp = time.strftime("%Y-%m-%dT%H:%M:%S")
+    with open(self.path, "a") as f:
+      f.write(f"{stamp} [learner] {message}\n")
+
+
+# ---------------------------------------------------------------------------------------------
+# Pytree <-> named arrays (rollout state).
+
+
+def _path_name(path) -> str:
+  parts = []
+  for p in path:
+    if isinstance(p, jax.tree_util.DictKey):
+      parts.append(str(p.key))
+    elif isinstance(p, jax.tree_util.GetAttrKey):
+      parts.append(p.name)
+    elif isinstance(p, jax.tree_util.SequenceKey):
+      parts.append(str(p.idx))
+    else:
+      parts.append(str(p))
+  return "/".join(parts)
+
+
+def _named_leaves(tree, prefix: str) -> dict[str, Any]:
+  leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
+  return {f"{prefix}/{_path_name(path)}": leaf for path, leaf in leaves}
+
+
+def _restore_tree(template, prefix: str, arrays: Mapping[str, np.ndarray], where: str):
+  leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
+  out = []
+  for path, leaf in leaves:
+    name = f"{prefix}/{_path_name(path)}"
+    if name not in arrays:
+      raise ckpt_lib.CheckpointError(f"{where}: rollout state has no {name}; it was written "
+                                     "for a different environment")
+    x = arrays[name]
+    if x.shape != leaf.shape or x.dtype != np.dtype(leaf.dtype):
+      raise ckpt_lib.CheckpointError(
+          f"{where}: rollout state {name} is {x.dtype}{list(x.shape)}, the environment "
+          f"needs {np.dtype(leaf.dtype)}{list(leaf.shape)}")
+    out.append(jnp.asarray(x))
+  return jax.tree_util.tree_unflatten(treedef, out)
+
+
+def _restore_history(arrays: Mapping[str, np.ndarray], shape, where: str) -> jax.Array:
+  x = arrays.get("history")
+  if x is None or x.shape != tuple(shape) or x.dtype != np.float32:
+    found = "nothing" if x is None else f"{x.dtype}{list(x.shape)}"
+    raise ckpt_lib.CheckpointError(f"{where}: rollout state history is {found}, the stage "
+                                   f"needs float32{list(shape)}")
+  return jnp.asarray(x)
+
+
+# ---------------------------------------------------------------------------------------------
+# Device placement.
+
+
+def _device_sharding(devices) -> NamedSharding:
+  """The sharding `jax.pmap` gives its outputs; inputs placed with it avoid a second compile
+  (pmap, now built on shard_map, keys its cache on the input shardings)."""
+  return NamedSharding(Mesh(np.array(devices), (AXIS,)), PartitionSpec(AXIS))
+
+
+def _put(tree, sharding):
+  return jax.device_put(tree, sharding)
+
+
+def _replicate(tree, n: int):
+  return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x)), tree)
+
+
+def _unreplicate(tree):
+  return jax.tree_util.tree_map(lambda x: x[0], tree)
+
+
+def _shard(tree, n: int):
+  return jax.tree_util.tree_map(lambda x: x.reshape((n, x.shape[0] // n) + x.shape[1:]), tree)
+
+
+def _unshard(tree):
+  return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), tree)
+
+
+# ---------------------------------------------------------------------------------------------
+# Episode statistics of a rollout.
+
+
+def _step_stats(nxt) -> dict[str, jax.Array]:
+  """Sums over the local batch of one step's episode ends and per-term rewards."""
+  done = nxt.done
+  em = nxt.episode_metrics
+  success = done * em["success"]
+  stats = {
+      "episodes": jnp.sum(done),
+      "successes": jnp.sum(success),
+      "recovery_time": jnp.sum(jnp.where(success > 0, jnp.nan_to_num(em["recovery_time"]), 0.0)),
+      "return": jnp.sum(done * em["return"]),
+      "steps": jnp.asarray(done.shape[0], jnp.float32),
+  }
+  for k, v in nxt.metrics.items():
+    if k.startswith("reward/"):
+      stats[k] = jnp.sum(v)
+  return stats
+
+
+def _summarize(stats: Mapping[str, Any]) -> dict[str, Any]:
+  """Host-side progress fields from the summed statistics."""
+  s = {k: float(v) for k, v in stats.items()}
+  episodes, successes = s["episodes"], s["successes"]
+  rewards = {k[len("reward/"):]: s[k] / max(s["steps"], 1.0)
+             for k in s if k.startswith("reward/")}
+  return {
+      "rewards": rewards,
+      "stand_rate": successes / episodes if episodes > 0 else None,
+      "recovery_time": s["recovery_time"] / successes if successes > 0 else None,
+      "episode_return": s["return"] / episodes if episodes > 0 else None,
+  }
+
+
+# ---------------------------------------------------------------------------------------------
+# The jitted iteration functions.
+
+
+def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devices):
+  ppo_cfg = config.ppo
+  unroll = ppo_cfg.unroll_length
+
+  def scan_stats(stats):
+    return jax.tree_util.tree_map(lambda x: jax.lax.psum(jnp.sum(x), AXIS), stats)
+
+  def ppo_iteration(learner: ppo_lib.LearnerState, env_state, history, key):
+    k_roll, k_update = jax.random.split(key)
+    params, normalizer = learner.params, learner.normalizer
+    log_std = params["policy"]["log_std"]
+    dist = nets.action_distribution
+
+    def step(carry, k):
+      es, hist = carry
+      loc = nets_lib.privileged_mean(nets, params, normalizer, es.obs, es.privileged)
+      std = jnp.broadcast_to(jnp.exp(log_std), loc.shape)
+      action = loc + std * jax.random.normal(k, loc.shape)
+      log_prob = dist.log_prob((loc, std), action)
+      nxt = env.step(es, action)
+      tr = ppo_lib.Transition(obs=es.obs, privileged=es.privileged, action=action, loc=loc,
+                              log_prob=log_prob, reward=nxt.reward, done=nxt.done,
+                              truncation=nxt.truncation, active=es.control_active)
+      return (nxt, nets_lib.push_history(hist, es.obs, nxt.done)), (tr, _step_stats(nxt))
+
+    (env_state, history), (data, stats) = jax.lax.scan(
+        step, (env_state, history), jax.random.split(k_roll, unroll))
+    learner, metrics = ppo_lib.ppo_update(
+        learner, data, env_state.obs, env_state.privileged, k_update, nets=nets, cfg=ppo_cfg,
+        mirror_weight=config.mirror_weight, maps=maps, axis_name=AXIS)
+    return learner, env_state, history, metrics, scan_stats(stats)
+
+  def adaptation_iteration(learner: ppo_lib.LearnerState, env_state, history, key):
+    params, normalizer = learner.params, learner.normalizer
+
+    def step(carry, _):
+      es, hist = carry
+      window = nets_lib.history_window(hist, es.obs)
+      action = nets_lib.deployable_mean(nets, params, normalizer, es.obs, hist)
+      nxt = env.step(es, action)
+      batch = rma_lib.AdaptationBatch(window=window, privileged=es.privileged)
+      return (nxt, nets_lib.push_history(hist, es.obs, nxt.done)), (batch, _step_stats(nxt))
+
+    (env_state, history), (batch, stats) = jax.lax.scan(
+        step, (env_state, history), None, length=unroll)
+    learner, metrics = rma_lib.adaptation_update(
+        learner, batch, key, nets=nets, cfg=ppo_cfg,
+        learning_rate=config.rma.adaptation_learning_rate, axis_name=AXIS)
+    return learner, env_state, history, metrics, scan_stats(stats)
+
+  return (jax.pmap(ppo_iteration, axis_name=AXIS, devices=devices),
+          jax.pmap(adaptation_iteration, axis_name=AXIS, devices=devices))
+
+
+# ---------------------------------------------------------------------------------------------
+# The entry point.
+
+
+def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
+                num_envs: int | None = None, init_checkpoint: str | Path | None = None,
+                resume_checkpoint: str | Path | None = None,
+                callback: Callable[[dict], str] | None = None, log_file: str | Path | None = None,
+                devices: list | None = None) -> dict:
+  """Trains one stage; returns {"status", "checkpoint", "env_steps"}.
+
+  Args:
+    env: a batched environment with the API of docs/contracts.md ("Environment API").
+    config: the stage's learner settings (LearnerConfig.from_stage).
+    stage_dir: checkpoints go to `<stage_dir>/checkpoints/<env_steps:012d>/` plus `LATEST`.
+    seed: the stage seed; all randomness derives from it.
+    num_envs: overrides ppo.num_envs; must divide by num_minibatches × devices.
+    init_checkpoint: start from these weights (same feature layout: expand it first), with
+      fresh optimizer step counters, the stage's learning rate, and observation statistics
+      rebased to a one-iteration prior (checkpoint.py explains why).
+    resume_checkpoint: continue exactly where this checkpoint stopped (needs its rollout
+      state); wins over init_checkpoint.
+    callback: called after every iteration with the progress dict of the facade contract;
+      answers "continue", "finish" (end the PPO phase now: the adaptation phase still runs,
+      since the deployable actor needs it) or "interrupt" (checkpoint and return now).
+    log_file: the run's log, to which the learner appends what it did.
+    devices: local devices to split the batch over (default: all).
+
+  Status: "completed" (budget spent), "finished_early" (the callback said "finish"),
+  "interrupted".
+  """
+  log = _Log(log_file)
+  devices = list(devices or jax.local_devices())
+  n_dev = len(devices)
+  p = config.ppo
+  batch = int(num_envs or p.num_envs)
+  if batch <= 0 or batch % (p.num_minibatches * n_dev):
+    raise ValueError(f"num_envs {batch} must be a positive multiple of num_minibatches "
+                     f"({p.num_minibatches}) × devices ({n_dev}) = {p.num_minibatches * n_dev}")
+  net_cfg = config.network_config(env)
+  nets = nets_lib.Networks(net_cfg)
+  maps = env.mirror
+  mirror_lib.check_maps(maps, env.obs_size, env.privileged_size, env.action_size)
+  if net_cfg.rma and config.rma.history_len < 1:
+    raise ValueError(f"rma.history_len must be >= 1, got {config.rma.history_len}")
+
+  steps_per_iter = batch * p.unroll_length
+  ppo_budget = int(config.env_steps)
+  adapt_budget = int(config.rma.adaptation_env_steps) if net_cfg.rma else 0
+  adapt_target = math.ceil(adapt_budget / steps_per_iter) * steps_per_iter
+  checkpoints_dir = Path(stage_dir) / "checkpoints"
+  names = (tuple(env.obs_names), tuple(env.privileged_names), tuple(env.action_names))
+
+  # -- state: fresh, initialised from weights, or resumed --------------------------------------
+  k_init, k_env, key = jax.random.split(seed_key(seed), 3)
+  # One compiled function for the whole initialisation (op by op, every layer's initializer
+  # would be compiled on its own).
+  template = jax.jit(lambda k: ppo_lib.init_learner_state(nets, nets.init(k), p.max_grad_norm,
+                                                          p.learning_rate))(k_init)
+  learner = template
+  counters = {"iteration": 0, "ppo_env_steps": 0, "adaptation_env_steps": 0, "phase": "ppo",
+              "finished_early": False}
+  reset = jax.jit(env.reset)
+  env_state = None
+  history = None
+  if resume_checkpoint is not None:
+    ck = ckpt_lib.load(resume_checkpoint)
+    ckpt_lib.check_layout(ck.meta, *names, net_cfg.meta(), str(resume_checkpoint))
+    info = ck.meta.get("learner")
+    if not isinstance(info, dict):
+      raise ckpt_lib.CheckpointError(f"{resume_checkpoint}: checkpoint.json has no learner "
+                                     "section; it cannot be resumed exactly")
+    if int(info.get("num_envs", -1)) != batch:
+      raise ckpt_lib.CheckpointError(
+          f"{resume_checkpoint}: written with {info.get('num_envs')} environments, resuming "
+          f"with {batch}; resume with num_envs = {info.get('num_envs')}")
+    learner = ckpt_lib.restore_learner(template, ck.tensors, fresh_optimizer=False)
+    rollout = ckpt_lib.load_rollout(resume_checkpoint)
+    env_template = jax.eval_shape(reset, jax.random.split(k_env, batch))
+    env_state = _restore_tree(env_template, "env", rollout, str(resume_checkpoint))
+    history = _restore_history(rollout, (batch, net_cfg.history_len, env.obs_size),
+                               str(resume_checkpoint))
+    key = jnp.asarray(np.asarray(ck.meta["prng_key"], np.uint32))
+    counters = {k: info[k] for k in counters}
+    if counters["phase"] not in ("ppo", "adaptation", "done"):
+      raise ckpt_lib.CheckpointError(f"{resume_checkpoint}: unknown learner phase "
+                                     f"{counters['phase']!r}")
+    if int(info.get("devices", n_dev)) != n_dev:
+      log(f"resuming a run written on {info.get('devices')} devices on {n_dev}: it continues "
+          "correctly but is no longer bit-identical to an uninterrupted run")
+    log(f"stage {config.stage_name}: resuming from {resume_checkpoint} "
+        f"(iteration {counters['iteration']}, phase {counters['phase']})")
+    if counters["phase"] == "done":
+      return {"status": "finished_early" if counters["finished_early"] else "completed",
+              "checkpoint": str(Path(resume_checkpoint)),
+              "env_steps": counters["ppo_env_steps"] + counters["adaptation_env_steps"]}
+  elif init_checkpoint is not None:
+    ck = ckpt_lib.load(init_checkpoint)
+    ckpt_lib.check_layout(ck.meta, *names, net_cfg.meta(), str(init_checkpoint))
+    learner = ckpt_lib.restore_learner(template, ck.tensors, fresh_optimizer=True,
+                                       learning_rate=p.learning_rate,
+                                       normalizer_prior_count=steps_per_iter)
+    log(f"stage {config.stage_name}: initialised from {init_checkpoint}")
+  if env_state is None:
+    env_state = reset(jax.random.split(k_env, batch))
+    history = jnp.zeros((batch, net_cfg.history_len, env.obs_size), jnp.float32)
+
+  ppo_iter, adapt_iter = _make_steps(env, nets, config, maps, devices)
+  sharding = _device_sharding(devices)
+  learner_d = _put(_replicate(learner, n_dev), sharding)
+  env_d = _put(_shard(env_state, n_dev), sharding)
+  hist_d = _put(_shard(history, n_dev), sharding)
+  log(f"stage {config.stage_name}: {batch} envs on {n_dev} device(s), {steps_per_iter} env "
+      f"steps per iteration, PPO budget {ppo_budget}, adaptation {adapt_budget}")
+
+  last_saved = {"env_steps": None}
+
+  def total_steps():
+    return counters["ppo_env_steps"] + counters["adaptation_env_steps"]
+
+  def save() -> Path:
+    steps = total_steps()
+    host_learner = jax.device_get(_unreplicate(learner_d))
+    rollout = {k: np.asarray(v) for k, v in _named_leaves(
+        jax.device_get(_unshard(env_d)), "env").items()}
+    rollout["history"] = np.asarray(jax.device_get(_unshard(hist_d)))
+    directory = checkpoints_dir / f"{steps:012d}"
+    extra = {"learner": dict(counters, num_envs=batch, devices=n_dev,
+                             initial_action_std=p.initial_action_std,
+                             ppo_budget=ppo_budget, adaptation_budget=adapt_budget)}
+    ckpt_lib.save(directory, state=host_learner, config=net_cfg, stage=config.stage_name,
+                  env_steps=steps, iteration=counters["iteration"], seed=seed, key=key,
+                  obs_names=names[0], privileged_names=names[1], action_names=names[2],
+                  action=config.action, extra=extra, rollout=rollout)
+    ckpt_lib.write_latest(checkpoints_dir, directory.name)
+    _prune_rollouts(checkpoints_dir, keep=directory)
+    last_saved["env_steps"] = steps
+    log(f"stage {config.stage_name}: checkpoint {directory} (iteration "
+        f"{counters['iteration']}, phase {counters['phase']})")
+    return directory
+
+  def run_iteration(fn, phase: str, total: int):
+    nonlocal learner_d, env_d, hist_d, key
+    key, k_iter = jax.random.split(key)
+    t0 = time.perf_counter()
+    learner_d, env_d, hist_d, metrics, stats = fn(
+        learner_d, env_d, hist_d, _put(jax.random.split(k_iter, n_dev), sharding))
+    metrics, stats = jax.device_get((_unreplicate(metrics), _unreplicate(stats)))
+    dt = time.perf_counter() - t0
+    counters["iteration"] += 1
+    counters[f"{phase}_env_steps"] += steps_per_iter
+    progress = {"iteration": counters["iteration"], "env_steps": total_steps(),
+                "steps_per_s": steps_per_iter / max(dt, 1e-9), "total_env_steps": total,
+                "phase": phase, "losses": {k: float(v) for k, v in metrics.items()}}
+    progress.update(_summarize(stats))
+    bad = sorted(k for k, v in progress["losses"].items() if not math.isfinite(v))
+    if bad:
+      # The parameters are poisoned from here on: stop rather than checkpoint garbage.
+      message = (f"stage {config.stage_name}: non-finite {', '.join(bad)} at iteration "
+                 f"{counters['iteration']} ({phase}); the last good checkpoint is "
+                 f"{ckpt_lib.read_latest(checkpoints_dir) or 'none'}")
+      log(message)
+      raise FloatingPointError(message)
+    answer = callback(progress) if callback is not None else "continue"
+    if answer not in ANSWERS:
+      raise ValueError(f"progress callback answered {answer!r}; valid: {', '.join(ANSWERS)}")
+    return answer
+
+  def interrupted():
+    directory = save()
+    log(f"stage {config.stage_name}: interrupted at {total_steps()} env steps")
+    return {"status": "interrupted", "checkpoint": str(directory), "env_steps": total_steps()}
+
+  every = max(int(p.checkpoint_every), 1)
+  if counters["phase"] == "ppo":
+    while counters["ppo_env_steps"] < ppo_budget:
+      answer = run_iteration(ppo_iter, "ppo", ppo_budget)
+      if answer == "interrupt":
+        return interrupted()
+      if answer == "finish":
+        counters["finished_early"] = True
+        log(f"stage {config.stage_name}: finish requested at {total_steps()} env steps")
+        break
+      if counters["iteration"] % every == 0:
+        save()
+    counters["phase"] = "adaptation" if adapt_budget > 0 else "done"
+    if counters["phase"] == "adaptation":
+      save()  # the phase boundary: a resume must not re-enter PPO
+
+  if counters["phase"] == "adaptation":
+    total = counters["ppo_env_steps"] + adapt_target
+    while counters["adaptation_env_steps"] < adapt_budget:
+      answer = run_iteration(adapt_iter, "adaptation", total)
+      if answer == "interrupt":
+        return interrupted()
+      # "finish" judges the PPO policy; the adaptation phase always completes its budget.
+      if counters["iteration"] % every == 0 and counters["adaptation_env_steps"] < adapt_budget:
+        save()
+    counters["phase"] = "done"
+
+  directory = save()
+  status = "finished_early" if counters["finished_early"] else "completed"
+  log(f"stage {config.stage_name}: {status} at {total_steps()} env steps")
+  return {"status": status, "checkpoint": str(directory), "env_steps": total_steps()}
+
+
+def _prune_rollouts(checkpoints_dir: Path, keep: Path) -> None:
+  """Drops the rollout state of older checkpoints: only the newest is resumed from, and at
+  scale a rollout state (every environment's full simulator state) dwarfs the parameters."""
+  for d in checkpoints_dir.iterdir():
+    if d.is_dir() and not d.name.startswith(".") and d != keep:
+      f = d / ckpt_lib.ROLLOUT_FILE
+      if f.exists():
+        f.unlink()

@@ -1,0 +1,180 @@
+"""The paper's reward terms (Table "Components of the Reward Function") and the success detector.
+
+Each term is one small function of `Quantities` (the per-step physical quantities, computed once
+from the physics view) returning an unweighted value per env [B]. The stage's weights multiply
+them; penalties carry negative weights in the config, so every function returns the paper's
+formula as written (a non-negative magnitude for penalties).
+
+Choices where the paper's table is ambiguous:
+  * DoF velocities/accelerations and torques are over all 23 joints (the held joints move too);
+    DoF acceleration is the finite difference of joint velocities over one control period
+    (smoother than the last substep's qacc, which spikes at every contact).
+  * Root acceleration is the Trunk's linear acceleration (world frame, finite difference over the
+    control period, gravity excluded).
+  * DoF position limits count joints outside the robot's real range (not the stage's widened
+    range), so stage 1's extended range is allowed but discouraged.
+  * Power is Σ|τ_i·q̇_i| (mechanical power in W, the L1 norm of τ⊙q̇).
+  * Hip roll is Σ over both hips of (q − q_ref)² with the left/right-mirrored reference
+    (q_ref for the left hip, −q_ref for the right: positive left roll and negative right roll
+    both spread the legs).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from jax_env.config import REWARD_TERMS, RewardParams, SuccessConfig
+
+
+@struct.dataclass
+class Quantities:
+  """Per-step physical quantities the reward terms and the success detector read, [B, ...]."""
+
+  base_height: jax.Array  # [B] Trunk origin above the floor
+  gravity: jax.Array  # [B, 3] unit gravity direction in the IMU frame
+  q: jax.Array  # [B, 23] joint positions
+  q_ref: jax.Array  # [23] the `stand` pose
+  qd: jax.Array  # [B, 23]
+  qdd: jax.Array  # [B, 23]
+  root_acc: jax.Array  # [B, 3]
+  torque: jax.Array  # [B, 23] actuator forces
+  torque_limit: jax.Array  # [B, 23]
+  range_low: jax.Array  # [23] the robot's real joint range
+  range_high: jax.Array  # [23]
+  action: jax.Array  # [B, nA]
+  prev_action: jax.Array  # [B, nA]
+  prev_prev_action: jax.Array  # [B, nA]
+  hip_roll: jax.Array  # [B, 2] left, right
+  standing: jax.Array  # [B] bool, the success detector's instantaneous condition
+
+
+def survival(x: Quantities, p: RewardParams) -> jax.Array:
+  return jnp.ones_like(x.base_height)
+
+
+def base_height(x: Quantities, p: RewardParams) -> jax.Array:
+  return jnp.exp(-p.base_height_sigma * (x.base_height - p.base_height_target) ** 2)
+
+
+def standing(x: Quantities, p: RewardParams) -> jax.Array:
+  return x.standing.astype(jnp.float32)
+
+
+def orientation(x: Quantities, p: RewardParams) -> jax.Array:
+  return jnp.sum(x.gravity[:, :2] ** 2, axis=-1)
+
+
+def dof_pos_ref(x: Quantities, p: RewardParams) -> jax.Array:
+  return jnp.sum((x.q_ref - x.q) ** 2, axis=-1)
+
+
+def torques(x: Quantities, p: RewardParams) -> jax.Array:
+  return jnp.sum(x.torque ** 2, axis=-1)
+
+
+def dof_vel(x: Quantities, p: RewardParams) -> jax.Array:
+  return jnp.sum(x.qd ** 2, axis=-1)
+
+
+def dof_acc(x: Quantities, p: RewardParams) -> jax.Array:
+  return jnp.sum(x.qdd ** 2, axis=-1)
+
+
+def root_acc(x: Quantities, p: RewardParams) -> jax.Array:
+  return jnp.sum(x.root_acc ** 2, axis=-1)
+
+
+def action_rate(x: Quantities, p: RewardParams) -> jax.Array:
+  first = x.action - x.prev_action
+  second = x.action - 2.0 * x.prev_action + x.prev_prev_action
+  return jnp.sum(first ** 2, axis=-1) + jnp.sum(second ** 2, axis=-1)
+
+
+def dof_pos_limits(x: Quantities, p: RewardParams) -> jax.Array:
+  out = (x.q < x.range_low) | (x.q > x.range_high)
+  return jnp.sum(out.astype(jnp.float32), axis=-1)
+
+
+def torque_fatigue(x: Quantities, p: RewardParams) -> jax.Array:
+  return jnp.sum((x.torque / x.torque_limit) ** 2, axis=-1)
+
+
+def power(x: Quantities, p: RewardParams) -> jax.Array:
+  return jnp.sum(jnp.abs(x.torque * x.qd), axis=-1)
+
+
+def hip_roll(x: Quantities, p: RewardParams) -> jax.Array:
+  ref = jnp.array([p.hip_roll_ref, -p.hip_roll_ref])
+  return jnp.sum((x.hip_roll - ref) ** 2, axis=-1)
+
+
+TERMS = {
+    "survival": survival, "base_height": base_height, "standing": standing,
+    "orientation": orientation, "dof_pos_ref": dof_pos_ref, "torques": torques,
+    "dof_vel": dof_vel, "dof_acc": dof_acc, "root_acc": root_acc, "action_rate": action_rate,
+    "dof_pos_limits": dof_pos_limits, "torque_fatigue": torque_fatigue, "power": power,
+    "hip_roll": hip_roll,
+}
+assert tuple(TERMS) == REWARD_TERMS
+
+
+def compute(x: Quantities, weights, params: RewardParams) -> tuple[jax.Array, dict]:
+  """(total reward [B], {"reward/<term>": weighted value [B]}) over the terms with weight ≠ 0.
+
+  Every term appears in the metrics (zero where its weight is zero) so logs have a fixed set.
+  """
+  total = jnp.zeros_like(x.base_height)
+  metrics = {}
+  for name, fn in TERMS.items():
+    w = float(weights[name])
+    value = w * fn(x, params) if w != 0.0 else jnp.zeros_like(total)
+    metrics[f"reward/{name}"] = value
+    total = total + value
+  return total, metrics
+
+
+# ---------------------------------------------------------------------------------------------
+# Success: stable standing held for hold_s.
+
+
+def is_standing(base_height, gravity, q, q_stand, stand_height, observed: jax.Array,
+                cfg: SuccessConfig) -> jax.Array:
+  """Instantaneous "standing": base height, torso uprightness and observed DoFs near `stand`.
+
+  `observed` is a [23] 0/1 mask of the stage's observed joints.
+  """
+  height_ok = jnp.abs(base_height - stand_height) <= cfg.height_tolerance
+  upright_ok = jnp.linalg.norm(gravity[:, :2], axis=-1) <= cfg.upright_tolerance
+  dof_err = jnp.max(jnp.abs(q - q_stand) * observed, axis=-1)
+  return height_ok & upright_ok & (dof_err <= cfg.dof_tolerance)
+
+
+@struct.dataclass
+class SuccessState:
+  streak: jax.Array  # [B] int32, consecutive control steps standing (while control is active)
+  success: jax.Array  # [B] bool, latched once the streak reached hold_steps
+  recovery_time: jax.Array  # [B] s from control start to the start of the successful streak
+
+
+def success_init(batch: int) -> SuccessState:
+  return SuccessState(streak=jnp.zeros((batch,), jnp.int32), success=jnp.zeros((batch,), bool),
+                      recovery_time=jnp.full((batch,), jnp.nan, jnp.float32))
+
+
+def success_update(s: SuccessState, standing_now, step, control_start, hold_steps: int,
+                   ctrl_dt: float) -> SuccessState:
+  """Advances the detector after control step `step` (0-based) of the episode.
+
+  Standing counts only while control is active. The successful streak began at the start of
+  the first of its standing steps, `step + 1 − streak`; recovery time is measured from the
+  control start (the end of settling), so a robot that holds `stand` from the first controlled
+  step recovers in 0 s.
+  """
+  counted = standing_now & (step >= control_start)
+  streak = jnp.where(counted, s.streak + 1, 0)
+  reached = (streak >= hold_steps) & ~s.success
+  began = (step + 1 - streak - control_start).astype(jnp.float32) * ctrl_dt
+  return SuccessState(streak=streak, success=s.success | reached,
+                      recovery_time=jnp.where(reached, began, s.recovery_time))

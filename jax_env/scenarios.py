@@ -1,0 +1,237 @@
+"""Initial states of fall-recovery episodes: a configurable mixture of fall scenarios.
+
+A reset is pure sampling — no physics runs — so the auto-reset inside the jitted step can draw a
+fresh state for every episode at the cost of a few hundred flops (no cached first state, unlike
+brax/Playground's auto-reset). Scenarios whose pose does not already rest on the floor (3D falls,
+random drops) start at their pose just above the floor, and the first `settle_s` seconds of the
+episode are "settling": the env ignores actions and its PD servos hold the initial joint targets
+while the robot falls into a resting configuration; control and recovery time start afterwards.
+
+Every pose is placed so that its lowest collision point sits `clearance` above the floor
+(computed with `kinematics.Kinematics`, exact for the model's primitive geoms), at a random
+heading, with the DR draws for joint angles, base xy and base velocity applied.
+
+Scenarios (docs/contracts.md): the six key states of the paper's KSI (keyframes, with Gaussian
+joint noise `ksi_joint_noise`), lying `supine` / `prone`, and the 3D falls of stage 2 — `lateral`
+(on either side), `sitting`, `crossed_legs`, and `random_drop` (random orientation and joint
+angles, dropped from up to 0.3 m).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+
+from jax_env import kinematics, robot
+from jax_env.config import KSI_SCENARIOS, SCENARIOS, StageConfig
+from jax_env.kinematics import axis_angle_quat, quat_mul
+from jax_env.randomization import OBSTACLE_PARK, EpisodeDraw, Randomizer
+
+# Scenarios whose initial pose is not a resting pose: their episodes start with settling.
+SETTLING_SCENARIOS = frozenset({"lateral", "sitting", "crossed_legs", "random_drop"})
+# Lowest point above the floor at the start: resting poses touch down within a few ms.
+REST_CLEARANCE = 0.005
+DROP_HEIGHT = (0.05, 0.3)
+# With an obstacle, the legs start spread by this hip roll so the ball fits between them.
+OBSTACLE_LEG_SPREAD = 0.15
+
+_X = np.array([1.0, 0.0, 0.0], np.float32)
+_Y = np.array([0.0, 1.0, 0.0], np.float32)
+_Z = np.array([0.0, 0.0, 1.0], np.float32)
+
+
+@struct.dataclass
+class InitialState:
+  qpos: jax.Array  # [B, nq]
+  qvel: jax.Array  # [B, nv]
+  mocap_pos: jax.Array  # [B, nmocap, 3]
+  scenario: jax.Array  # [B] int32 index into SCENARIOS
+  settles: jax.Array  # [B] bool: the episode starts with settle_s of settling
+
+
+@struct.dataclass
+class _Noise:
+  """Pre-drawn randomness of one env's pose (see `_pose_fn`)."""
+
+  u: jax.Array  # [8] U(0, 1); u[7] is the heading
+  joints: jax.Array  # [23] U(0, 1)
+  normal: jax.Array  # [23] N(0, 1)
+  quat: jax.Array  # [4] N(0, 1)
+
+
+@struct.dataclass
+class _Pose:
+  joints: jax.Array  # [23]
+  quat: jax.Array  # [4] before the random heading
+  clearance: jax.Array  # []
+
+
+class ScenarioSampler:
+  """Samples initial states of a stage's scenario mixture (batched, pure, jit-able)."""
+
+  def __init__(self, stage: StageConfig, mj_model: mujoco.MjModel, randomizer: Randomizer):
+    self.stage = stage
+    self.randomizer = randomizer
+    self.kin = kinematics.Kinematics(mj_model)
+    self.nq, self.nv = mj_model.nq, mj_model.nv
+    self.nmocap = mj_model.nmocap
+    jnt = np.array([mj_model.joint(j).id for j in robot.JOINT_NAMES])
+    self.lo = np.asarray(mj_model.jnt_range[jnt, 0], np.float32)
+    self.hi = np.asarray(mj_model.jnt_range[jnt, 1], np.float32)
+    self.stand = np.asarray(robot.stand_pose(mj_model), np.float32)
+    self.key_qpos = np.stack([robot.keyframe(mj_model, k)[0] for k in KSI_SCENARIOS]
+                             ).astype(np.float32)
+    self.noise = stage.scenario_params.ksi_joint_noise
+    weights = np.array([stage.scenarios[s] for s in SCENARIOS], np.float32)
+    self.logits = np.log(np.maximum(weights, 1e-30))
+    self.settles = np.array([s in SETTLING_SCENARIOS for s in SCENARIOS])
+    self.j = {name: i for i, name in enumerate(robot.JOINT_NAMES)}
+    obstacle_body = mj_model.body(robot.OBSTACLE_BODY)
+    self.obstacle_mocap = int(obstacle_body.mocapid[0])
+    self.park = OBSTACLE_PARK
+    geom = int(obstacle_body.geomadr[0])
+    self.obstacle_radius = float(mj_model.geom_size[geom, 0])
+    self.ankles = (int(mj_model.body("Ankle_Cross_Left").id),
+                   int(mj_model.body("Ankle_Cross_Right").id))
+    self._poses = [self._pose_fn(s) for s in SCENARIOS]
+
+  # -- poses (one env, before heading, DR and placement) ----------------------------------------
+
+  def _clip(self, q):
+    return jnp.clip(q, self.lo, self.hi)
+
+  def _set(self, q, name, value):
+    return q.at[self.j[name]].set(value)
+
+  def _pose_fn(self, scenario: str):
+    """The pose sampler of one scenario: `_Noise` -> `_Pose`.
+
+    Every scenario reads the same pre-drawn noise (one uniform and one normal draw per env), so
+    the `lax.switch` over scenarios holds arithmetic only: a dozen branches each with their own
+    PRNG calls made the reset several times slower to compile.
+    """
+    stand = jnp.asarray(self.stand)
+    rest = jnp.float32(REST_CLEARANCE)
+    lo, hi = jnp.asarray(self.lo), jnp.asarray(self.hi)
+
+    def between(u, a, b):
+      return a + (b - a) * u
+
+    if scenario in KSI_SCENARIOS:
+      qpos = jnp.asarray(self.key_qpos[KSI_SCENARIOS.index(scenario)])
+
+      def ksi(z):
+        return _Pose(self._clip(qpos[7:] + self.noise * z.normal), qpos[3:7], rest)
+      return ksi
+
+    if scenario in ("supine", "prone"):
+      # Supine lies on the back (the torso's x axis points up), prone on the front.
+      pitch = jnp.float32(-math.pi / 2 if scenario == "supine" else math.pi / 2)
+
+      def lying(z):
+        q = stand + between(z.joints, -0.1, 0.1)
+        tilt = between(z.u[0], -0.1, 0.1)
+        quat = quat_mul(axis_angle_quat(_X, tilt), axis_angle_quat(_Y, pitch))
+        return _Pose(self._clip(q), quat, rest)
+      return lying
+
+    if scenario == "lateral":
+      def lateral(z):
+        side = jnp.where(z.u[0] < 0.5, 1.0, -1.0)
+        q = stand + between(z.joints, -0.3, 0.3)
+        lean = between(z.u[1], -0.3, 0.3)
+        quat = quat_mul(axis_angle_quat(_X, side * math.pi / 2), axis_angle_quat(_Y, lean))
+        return _Pose(self._clip(q), quat, rest)
+      return lateral
+
+    if scenario == "sitting":
+      def sitting(z):
+        lean = between(z.u[0], 0.1, 0.5)  # the torso leans back
+        hip = -math.pi / 2 + lean + between(z.u[1], -0.2, 0.2)  # thighs along the floor
+        knee, ankle = between(z.u[2], 0.2, 1.4), between(z.u[3], -0.5, 0.3)
+        arm = between(z.u[4], 0.2, 1.0)  # arms reach back to the floor
+        q = stand
+        for side in ("Left", "Right"):
+          q = self._set(q, f"{side}_Hip_Pitch", hip)
+          q = self._set(q, f"{side}_Knee_Pitch", knee)
+          q = self._set(q, f"{side}_Ankle_Pitch", ankle)
+          q = self._set(q, f"{side}_Shoulder_Pitch", arm)
+        q = q + 0.05 * z.normal
+        return _Pose(self._clip(q), axis_angle_quat(_Y, -lean), rest)
+      return sitting
+
+    if scenario == "crossed_legs":
+      def crossed(z):
+        pitch = jnp.where(z.u[0] < 0.5, -math.pi / 2, math.pi / 2)  # on the back or front
+        # Both hips roll inward, up to their limits, and one leg lies over the other.
+        left_on_top = z.u[1] < 0.5
+        lift = between(z.u[2], 0.2, 0.6)
+        roll = between(z.u[3], 0.5, 1.0)
+        yaw = between(z.u[4], 0.0, 0.4)
+        q = stand
+        q = self._set(q, "Left_Hip_Roll", roll * self.lo[self.j["Left_Hip_Roll"]])
+        q = self._set(q, "Right_Hip_Roll", roll * self.hi[self.j["Right_Hip_Roll"]])
+        q = self._set(q, "Left_Hip_Yaw", -yaw)
+        q = self._set(q, "Right_Hip_Yaw", yaw)
+        q = q.at[self.j["Left_Hip_Pitch"]].add(jnp.where(left_on_top, -lift, 0.0))
+        q = q.at[self.j["Right_Hip_Pitch"]].add(jnp.where(left_on_top, 0.0, -lift))
+        q = q + 0.05 * z.normal
+        return _Pose(self._clip(q), axis_angle_quat(_Y, pitch), rest)
+      return crossed
+
+    if scenario == "random_drop":
+      def drop(z):
+        quat = z.quat / jnp.maximum(jnp.linalg.norm(z.quat), 1e-6)  # uniform on SO(3)
+        q = between(z.joints, lo, hi)
+        return _Pose(q, quat, between(z.u[0], *DROP_HEIGHT))
+      return drop
+
+    raise ValueError(f"unknown scenario {scenario!r}; valid: {', '.join(SCENARIOS)}")
+
+  # -- batch sampling --------------------------------------------------------------------------
+
+  def sample(self, keys: jax.Array, draw: EpisodeDraw, scenario: jax.Array | None = None
+             ) -> InitialState:
+    """Initial states from per-env keys [B]; `scenario` [B] forces scenario indices (else each
+    env draws one from the stage's mixture)."""
+    if scenario is None:
+      scenario = jnp.full(keys.shape[:1], -1, jnp.int32)
+    return jax.vmap(self._one)(keys, scenario, draw.dof_position, draw.base_xy,
+                               draw.base_lin_vel, draw.obstacle)
+
+  def _one(self, key, scenario, dof_draw, xy_draw, vel_draw, obstacle):
+    k_scn, k_u, k_n = jax.random.split(key, 3)
+    drawn = jax.random.categorical(k_scn, jnp.asarray(self.logits)).astype(jnp.int32)
+    scenario = jnp.where(scenario >= 0, scenario, drawn)
+    nj = robot.NUM_JOINTS
+    u = jax.random.uniform(k_u, (8 + nj,))
+    normal = jax.random.normal(k_n, (4 + nj,))
+    z = _Noise(u=u[:8], joints=u[8:], normal=normal[:nj], quat=normal[nj:])
+    yaw = 2 * math.pi * u[7]
+    pose = jax.lax.switch(scenario, self._poses, z)
+    q = self._clip(self.randomizer.perturb_joints(pose.joints, dof_draw))
+    # With the ball between the legs, spread the legs so it fits (hip roll outward).
+    spread = OBSTACLE_LEG_SPREAD * obstacle
+    q = q.at[self.j["Left_Hip_Roll"]].add(spread).at[self.j["Right_Hip_Roll"]].add(-spread)
+    q = self._clip(q)
+    quat = quat_mul(axis_angle_quat(_Z, yaw), pose.quat)
+    xy, lin_vel = self.randomizer.perturb_base(jnp.zeros(2), jnp.zeros(3), xy_draw, vel_draw)
+    qpos = jnp.concatenate([xy, jnp.zeros(1), quat, q])
+    bpos, bquat = self.kin.bodies(qpos)  # at base height 0
+    lift = pose.clearance - self.kin.lowest_point_of(bpos, bquat)
+    qpos = qpos.at[2].set(lift)
+    qvel = jnp.zeros(self.nv).at[0:3].set(lin_vel)
+    mocap = jnp.broadcast_to(jnp.asarray(OBSTACLE_PARK), (self.nmocap, 3))
+    if self.nmocap:
+      between = 0.5 * (bpos[self.ankles[0]] + bpos[self.ankles[1]])
+      ball = jnp.stack([between[0], between[1], jnp.float32(self.obstacle_radius + 1e-3)])
+      mocap = mocap.at[self.obstacle_mocap].set(jnp.where(obstacle > 0, ball,
+                                                          jnp.asarray(OBSTACLE_PARK)))
+    settles = jnp.asarray(self.settles)[scenario]
+    return InitialState(qpos=qpos, qvel=qvel, mocap_pos=mocap, scenario=scenario,
+                        settles=settles)

@@ -1,0 +1,171 @@
+//! Curriculum errors and checkpoint expansion through the real binary. Neither needs Python:
+//! a curriculum is rejected before the interpreter starts, and expansion is pure Rust.
+
+use std::path::{Path, PathBuf};
+
+use hifar_cli::checkpoint::{self, Checkpoint, CheckpointMeta, Tensor};
+use hifar_cli::curriculum;
+use serde_json::json;
+
+use crate::common::{data, hifar, stderr, stdout, tempdir};
+
+/// The fixtures of tests/data/bad, each with its expected `LINE:COL` and message fragment
+/// (second line: `# expect: LINE:COL: fragment`).
+fn bad_fixtures() -> Vec<(PathBuf, String, String)> {
+    let dir = data("bad");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .expect("tests/data/bad")
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
+        .collect();
+    files.sort();
+    files
+        .into_iter()
+        .map(|file| {
+            let text = std::fs::read_to_string(&file).unwrap();
+            let expect = text.lines().nth(1).and_then(|l| l.strip_prefix("# expect: ")).expect("an expect line").to_owned();
+            let (position, fragment) = expect.split_once(": ").unwrap();
+            (file, position.to_owned(), fragment.to_owned())
+        })
+        .collect()
+}
+
+#[test]
+fn every_class_of_curriculum_error_exits_2_with_its_line() {
+    let dir = tempdir();
+    let fixtures = bad_fixtures();
+    assert!(fixtures.len() >= 20);
+    let mut failures = Vec::new();
+    for (file, position, fragment) in fixtures {
+        let output = hifar(dir.path()).arg("check").arg(&file).output().unwrap();
+        let err = stderr(&output);
+        let first = err.lines().next().unwrap_or_default();
+        let expected = format!("{}:{position}: ", file.display());
+        if output.status.code() != Some(2) || !first.contains(&expected) || !first.contains(&fragment) {
+            failures.push(format!(
+                "{}: exit {:?}\n  expected …{expected}…{fragment}…\n  got      {first}",
+                file.display(),
+                output.status.code()
+            ));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+#[test]
+fn a_bad_curriculum_creates_no_run_directory() {
+    let dir = tempdir();
+    let run = dir.path().join("run");
+    let output = hifar(dir.path())
+        .args(["train", data("bad/unknown_joint.toml").to_str().unwrap(), "--run-dir"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert_eq!(output.status.code(), Some(2), "{}", stderr(&output));
+    assert!(stderr(&output).contains("unknown joint \"Left_Knee\""), "{}", stderr(&output));
+    assert!(!run.exists());
+}
+
+#[test]
+fn an_unreadable_curriculum_exits_2() {
+    let dir = tempdir();
+    let output = hifar(dir.path()).args(["check", "no/such/file.toml"]).output().unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    assert!(stderr(&output).contains("no/such/file.toml: cannot read the curriculum"), "{}", stderr(&output));
+}
+
+/// A checkpoint of tiny.toml's "planar" stage laid out like the learner's (actor with an RMA
+/// latent, critic with privileged inputs, normalizer, optimizer moment, step counter).
+fn planar_checkpoint(dir: &Path) {
+    let tiny = curriculum::load(&data("tiny.toml")).unwrap();
+    let stage = &tiny.stages()[0];
+    let f = curriculum::feature_names(stage);
+    let (n_obs, n_priv, n_act) = (f.obs_names.len(), f.privileged_names.len(), f.action_names.len());
+    let (hidden, latent) = (16, 4);
+    let obs = json!({"features": "obs"});
+    let act = json!({"features": "action"});
+    let mut tensors = std::collections::BTreeMap::new();
+    let mut annotations = serde_json::Map::new();
+    let mut add = |name: &str, shape: Vec<usize>, axes: serde_json::Value, fill: serde_json::Value| {
+        let n: usize = shape.iter().product();
+        let values: Vec<f32> = (0..n).map(|i| ((i * 7919 % 113) as f32 - 56.0) / 50.0).collect();
+        tensors.insert(name.to_owned(), Tensor::from_f32(shape.clone(), &values));
+        annotations.insert(name.to_owned(), json!({"shape": shape, "axes": axes, "fill": fill}));
+    };
+    add("policy/hidden_0/kernel", vec![n_obs + latent, hidden], json!([[obs, {"fixed": latent}], null]), json!(0.0));
+    add("policy/hidden_0/bias", vec![hidden], json!([null]), json!(null));
+    add("policy/hidden_1/kernel", vec![hidden, hidden], json!([null, null]), json!(null));
+    add("policy/hidden_1/bias", vec![hidden], json!([null]), json!(null));
+    add("policy/hidden_2/kernel", vec![hidden, n_act], json!([null, [act]]), json!(0.0));
+    add("policy/hidden_2/bias", vec![n_act], json!([[act]]), json!(0.0));
+    add("policy/log_std", vec![n_act], json!([[act]]), json!("log_initial_action_std"));
+    add("value/hidden_0/kernel", vec![n_obs + n_priv, hidden], json!([[obs, {"features": "privileged"}], null]), json!(0.0));
+    add("normalizer/obs/mean", vec![n_obs], json!([[obs]]), json!(0.0));
+    add("normalizer/obs/std", vec![n_obs], json!([[obs]]), json!(1.0));
+    add("opt/policy/mu/hidden_0/kernel", vec![n_obs + latent, hidden], json!([[obs, {"fixed": latent}], null]), json!(0.0));
+    tensors.insert("opt/count".into(), Tensor { dtype: safetensors::Dtype::I32, shape: vec![], data: 9i32.to_le_bytes().to_vec() });
+    annotations.insert("opt/count".into(), json!({"shape": [], "axes": []}));
+    let meta: CheckpointMeta = serde_json::from_value(json!({
+        "format_version": 1, "stage": "planar", "env_steps": 192, "iteration": 3, "seed": 7, "prng_key": [0, 7],
+        "obs_names": f.obs_names, "privileged_names": f.privileged_names, "action_names": f.action_names,
+        "network": {"policy_hidden": [16, 16], "value_hidden": [16, 16], "activation": "elu",
+                    "latent_dim": latent, "encoder_hidden": [16], "history_len": 4, "rma": true},
+        "action": {"mapping": "current", "scale": 0.5, "clip": 1.0},
+        "tensors": annotations,
+    }))
+    .unwrap();
+    checkpoint::save(dir, &Checkpoint { dir: dir.to_path_buf(), meta, tensors, header: None }).unwrap();
+}
+
+#[test]
+fn expand_checkpoint_adds_the_hip_roll_features() {
+    let dir = tempdir();
+    let src = dir.path().join("planar");
+    planar_checkpoint(&src);
+    let out = dir.path().join("full");
+    let run = |out: &Path| {
+        hifar(dir.path())
+            .arg("expand-checkpoint")
+            .arg(&src)
+            .arg("--curriculum")
+            .arg(data("tiny.toml"))
+            .args(["--stage", "full", "--out"])
+            .arg(out)
+            .output()
+            .unwrap()
+    };
+    let output = run(&out);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let report = stdout(&output);
+    assert!(report.contains("+2 actions (Left_Hip_Roll, Right_Hip_Roll)"), "{report}");
+    assert!(report.contains("+6 obs (joint_pos/Left_Hip_Roll, joint_pos/Right_Hip_Roll, joint_vel/Left_Hip_Roll"), "{report}");
+
+    let expanded = checkpoint::load(&out).unwrap();
+    assert_eq!(expanded.meta.stage, "full");
+    assert_eq!(expanded.meta.obs_names.len(), 42);
+    assert_eq!(expanded.meta.action_names.len(), 12);
+    assert_eq!(expanded.tensors["policy/hidden_0/kernel"].shape, vec![42 + 4, 16]);
+    assert_eq!(expanded.tensors["policy/hidden_2/kernel"].shape, vec![16, 12]);
+    // log_std of a new action: ln(initial_action_std) of stage "full" (0.5).
+    let log_std = expanded.tensors["policy/log_std"].to_f32().unwrap();
+    let hip = expanded.meta.action_names.iter().position(|a| a == "Left_Hip_Roll").unwrap();
+    assert_eq!(log_std[hip], 0.5f32.ln());
+
+    // Never overwrites; a bad checkpoint is a one-line runtime error (exit 1).
+    let again = run(&out);
+    assert_eq!(again.status.code(), Some(2), "{}", stderr(&again));
+    std::fs::write(src.join("checkpoint.json"), "{ not json").unwrap();
+    let corrupt = run(&dir.path().join("other"));
+    assert_eq!(corrupt.status.code(), Some(1));
+    let message = stderr(&corrupt);
+    assert_eq!(message.lines().count(), 1, "{message}");
+    assert!(message.contains("checkpoint.json:1:3: corrupt checkpoint metadata"), "{message}");
+    let missing = hifar(dir.path())
+        .args(["expand-checkpoint", "nowhere", "--curriculum"])
+        .arg(data("tiny.toml"))
+        .args(["--stage", "full", "--out", "x"])
+        .output()
+        .unwrap();
+    assert_eq!(missing.status.code(), Some(1));
+    assert!(stderr(&missing).contains("nowhere: no such checkpoint directory"), "{}", stderr(&missing));
+}

@@ -1,0 +1,8 @@
+//! Integration tests: each drives the real `hifar` binary in its own temporary directory.
+mod act;
+mod bench;
+mod common;
+mod curriculum;
+mod runs;
+mod train;
+mod usage;
