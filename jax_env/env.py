@@ -12,7 +12,8 @@ One control step:
   2. targets are clamped by the velocity limit (randomization.velocity_limited_target) and the
      stage's joint range, then enter a short history from which each physics substep takes the
      target that was issued at least `delay` earlier (the per-episode control delay);
-  3. a push (force and torque on the Trunk) is applied where one is scheduled;
+  3. a push (force and torque on the Trunk) is applied where one is scheduled: the random pushes
+     of training, or the evaluation protocols' push fixed in the Trunk frame;
   4. physics runs ctrl_dt / timestep substeps;
   5. observations, privileged features, rewards and the success detector read the new view;
   6. episodes that reached the time limit or blew up numerically (NaN) are reset with a fresh
@@ -33,7 +34,7 @@ from flax import struct
 from jax_env import config as config_lib
 from jax_env import rewards as rewards_lib
 from jax_env import robot
-from jax_env.config import SCENARIOS, StageConfig
+from jax_env.config import SCENARIOS, TERRAINS, StageConfig
 from jax_env.kinematics import Kinematics, rotate_inverse
 from jax_env.physics import make_backend
 from jax_env.physics.view import PhysicsView
@@ -41,6 +42,16 @@ from jax_env.randomization import (EpisodeDraw, PushState, Pusher, Randomizer,
                                    constrained_model, delayed_ctrl,
                                    velocity_limited_target)
 from jax_env.scenarios import ScenarioSampler
+
+
+def _forced_index(value, names, what, shape):
+  """A forced choice as per-env indices [B] (−1: draw), from a name or an index array."""
+  if value is None or not isinstance(value, str):
+    return value
+  if value not in names:
+    raise ValueError(f"unknown {what} {value!r}; valid: {', '.join(names)}")
+  return jnp.full(shape, names.index(value), jnp.int32)
+
 
 # A state whose joint or base speed exceeds this (rad/s or m/s) has blown up numerically.
 BLOWUP_SPEED = 1e3
@@ -154,18 +165,19 @@ class FallRecoveryEnv:
   # -------------------------------------------------------------------------------------------
   # Reset.
 
-  def reset(self, keys: jax.Array, scenario: str | jax.Array | None = None) -> EnvState:
+  def reset(self, keys: jax.Array, scenario: str | jax.Array | None = None,
+            terrain: str | jax.Array | None = None) -> EnvState:
     """Fresh episodes from per-env keys [B] (jax.random.split(key, B)).
 
     `scenario` forces one scenario (a name from config.SCENARIOS) or per-env indices [B] into
     config.SCENARIOS (−1: draw from the mixture); by default every env draws from the stage's
-    mixture. Forcing is for evaluation; training and every auto-reset use the mixture.
+    mixture. `terrain` likewise forces a terrain of config.TERRAINS (a slope draws its angle up
+    to the stage's slope_max_deg, an obstacle sits between the legs, as in training). Forcing is
+    for evaluation; training and every auto-reset use the mixtures.
     """
-    if isinstance(scenario, str):
-      if scenario not in SCENARIOS:
-        raise ValueError(f"unknown scenario {scenario!r}; valid: {', '.join(SCENARIOS)}")
-      scenario = jnp.full(keys.shape[:1], SCENARIOS.index(scenario), jnp.int32)
-    return self._reset(keys, scenario)
+    scenario = _forced_index(scenario, SCENARIOS, "scenario", keys.shape[:1])
+    terrain = _forced_index(terrain, TERRAINS, "terrain", keys.shape[:1])
+    return self._reset(keys, scenario, terrain)
 
   def reset_to(self, keys: jax.Array, qpos: jax.Array, qvel: jax.Array,
                settle: bool = False) -> EnvState:
@@ -185,18 +197,22 @@ class FallRecoveryEnv:
     out = jax.vmap(lambda k: jax.random.split(k, n))(keys)
     return tuple(out[:, i] for i in range(n))
 
-  def _draw(self, keys) -> EpisodeDraw:
-    draw = jax.vmap(lambda k: self.randomizer.draw(k, 1))(keys)
+  def _draw(self, keys, terrain=None) -> EpisodeDraw:
+    if terrain is None:
+      draw = jax.vmap(lambda k: self.randomizer.draw(k, 1))(keys)
+    else:
+      draw = jax.vmap(lambda k, t: self.randomizer.draw(k, 1, t[None]))(keys, terrain)
     return jax.tree_util.tree_map(lambda x: x[:, 0], draw)
 
-  def _reset(self, keys, scenario=None) -> EnvState:
+  def _reset(self, keys, scenario=None, terrain=None) -> EnvState:
     keys, k_draw, k_scn = self._split(keys, 3)
-    draw = self._draw(k_draw)
+    draw = self._draw(k_draw, terrain)
     init = self.sampler.sample(k_scn, draw, scenario)
     return self._start(keys, draw, init.qpos, init.qvel, init.mocap_pos, init.scenario,
-                       init.settles)
+                       init.settles, init.geom_lowest)
 
-  def _start(self, keys, draw, qpos, qvel, mocap, scenario, settles) -> EnvState:
+  def _start(self, keys, draw, qpos, qvel, mocap, scenario, settles, geom_lowest=None
+             ) -> EnvState:
     batch = qpos.shape[0]
     keys, k_push = self._split(keys, 2)
     qpos = qpos.astype(jnp.float32)
@@ -209,7 +225,9 @@ class FallRecoveryEnv:
     # Reset features come from qpos/qvel alone, the same for every backend: the IMU gyro of a
     # free Trunk equals qvel[3:6] (body-frame angular velocity), and floor contact is read off
     # the kinematics (a geom touches the floor when its lowest point is at or below it).
-    view = self._reset_view(qpos, qvel)
+    if geom_lowest is None:
+      geom_lowest = jax.vmap(self.kin.geom_lowest)(qpos)
+    view = self._reset_view(qpos, qvel, geom_lowest)
     obs = self._obs(view, draw, zeros_a)
     priv = self._privileged(view, draw, push, jnp.zeros((batch,), bool))
     zeros = jnp.zeros((batch,))
@@ -224,10 +242,10 @@ class FallRecoveryEnv:
         push_active=jnp.zeros((batch,), bool), success=rewards_lib.success_init(batch),
         episode_return=zeros, rng=keys)
 
-  def _reset_view(self, qpos, qvel) -> PhysicsView:
+  def _reset_view(self, qpos, qvel, geom_lowest) -> PhysicsView:
     batch = qpos.shape[0]
-    low = jax.vmap(self.kin.geom_lowest)(qpos)  # [B, ngeom_robot]
-    touching = jnp.any(jnp.asarray(self.contact_geoms)[None] & (low[:, None, :] <= 1e-4), -1)
+    touching = jnp.any(jnp.asarray(self.contact_geoms)[None] & (geom_lowest[:, None, :] <= 1e-4),
+                       -1)
     sensordata = jnp.zeros((batch, self.mj_model.nsensordata))
     sensordata = sensordata.at[:, self.gyro].set(qvel[:, 3:6])
     sensordata = sensordata.at[:, self.contact_adr].set(touching.astype(jnp.float32))
@@ -272,8 +290,12 @@ class FallRecoveryEnv:
     # 3. Pushes.
     rng, k_push, k_reset = self._split(state.rng, 3)
     push, pushing = self.pusher.update(k_push, state.push, state.step_count)
+    # The evaluation protocols' scheduled push, fixed in the Trunk frame (never in training).
+    scheduled_force, scheduled = self.pusher.scheduled(push, state.step_count,
+                                                       view0.qpos[:, 3:7])
     xfrc = jnp.zeros((batch, self.mj_model.nbody, 6))
     wrench = jnp.concatenate([push.force, push.torque], axis=-1) * pushing[:, None]
+    wrench = wrench.at[:, :3].add(scheduled_force)
     xfrc = xfrc.at[:, self.trunk].set(wrench)
 
     # 4. Physics.
@@ -305,7 +327,8 @@ class FallRecoveryEnv:
         "scenario": state.scenario.astype(jnp.float32),
     }
     obs = self._obs(view, state.draw, applied)
-    priv = self._privileged(view, state.draw, push, pushing)
+    priv = self._privileged(view, state.draw, push, pushing, scheduled_force)
+    pushing = pushing | scheduled
     nxt = state.replace(
         physics=physics, obs=obs, privileged=priv, reward=reward,
         done=done.astype(jnp.float32), truncation=(time_up & finite).astype(jnp.float32),
@@ -341,7 +364,8 @@ class FallRecoveryEnv:
         self._gravity(view, draw), view.sensordata[:, self.gyro],
         q[:, self.obs_idx], qd[:, self.obs_idx], last_action], axis=-1)
 
-  def _privileged(self, view: PhysicsView, draw: EpisodeDraw, push: PushState, pushing):
+  def _privileged(self, view: PhysicsView, draw: EpisodeDraw, push: PushState, pushing,
+                  scheduled_force=0.0):
     batch = view.qpos.shape[0]
     col = lambda x: x[:, None]
     on = pushing[:, None].astype(jnp.float32)
@@ -352,7 +376,7 @@ class FallRecoveryEnv:
         draw.mass_scale, draw.com_offset.reshape(batch, -1),
         draw.kp_scale, draw.kd_scale, tls, col(draw.delay_s),
         view.qpos[:, 2:3], view.qvel[:, 0:3], contact,
-        push.force * on, push.torque * on,
+        push.force * on + scheduled_force, push.torque * on,
         draw.slope, col(draw.obstacle)], axis=-1)
 
   def _quantities(self, view: PhysicsView, state: EnvState, action) -> rewards_lib.Quantities:

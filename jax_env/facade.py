@@ -125,7 +125,35 @@ def train_stage(request: dict, callback: Callable[[dict], str] | None) -> dict:
       env, learner_config, stage_dir=request["stage_dir"], seed=int(request["seed"]),
       num_envs=request.get("num_envs"), init_checkpoint=request.get("init_checkpoint"),
       resume_checkpoint=request.get("resume_checkpoint"), callback=callback,
-      log_file=request.get("log_file"))
+      log_file=request.get("log_file"), stage_config=request["stage"])
+
+
+def evaluate(request: dict, callback: Callable[[dict], str] | None = None) -> dict:
+  """Runs an evaluation protocol on a checkpoint and writes eval.json, eval.csv and eval.md.
+
+  See docs/contracts.md ("Evaluation") for the request, progress and result keys.
+  """
+  from jax_env.evaluation import runner
+  return runner.evaluate(request, callback)
+
+
+def rollout(request: dict) -> dict:
+  """One recorded episode of a checkpoint's policy (docs/contracts.md, "Rollout")."""
+  from jax_env.evaluation import recording
+  return recording.rollout(request)
+
+
+def report(request: dict) -> dict:
+  """PNG plots and a markdown summary of a run (docs/contracts.md, "Report")."""
+  from jax_env.evaluation import report as report_lib
+  return report_lib.report(request)
+
+
+def export_onnx(request: dict) -> dict:
+  """The deployable actor of a checkpoint as ONNX, checked with onnxruntime
+  (docs/contracts.md, "Export")."""
+  from jax_env import export
+  return export.export_onnx(request)
 
 
 _ACTORS: dict = {}

@@ -80,17 +80,31 @@ class Kinematics:
     depth = {self.root: 0}
     for b in self.body_ids[1:]:
       depth[int(b)] = depth[int(self.parent[b])] + 1
-    self.levels = []
-    for d in range(1, max(depth.values()) + 1):
-      ids = np.array([b for b in self.body_ids[1:] if depth[int(b)] == d], np.int32)
-      hinge = [self.hinge.get(int(b)) for b in ids]
-      self.levels.append(dict(
-          ids=ids, parent=self.parent[ids].astype(np.int32),
-          pos=self.body_pos[ids], quat=self.body_quat[ids],
-          hinge=np.array([h is not None for h in hinge], np.float32),
-          qadr=np.array([h[0] if h else 0 for h in hinge], np.int32),
-          axis=np.array([h[1] if h else (0.0, 0.0, 1.0) for h in hinge], np.float32),
-          anchor=np.array([h[2] if h else (0.0, 0.0, 0.0) for h in hinge], np.float32)))
+    levels = [[int(b) for b in self.body_ids[1:] if depth[int(b)] == d]
+              for d in range(1, max(depth.values()) + 1)]
+    # Levels are padded to one width so that `bodies` can scan over them: the loop body is
+    # traced and compiled once instead of once per level, which keeps this pass (run by every
+    # reset, hence inside every environment step) cheap to compile. Padding rows write to a
+    # scratch row `nbody` that is dropped at the end.
+    width = max(len(lv) for lv in levels)
+
+    def padded(values, fill):
+      return np.array([list(v) + [fill] * (width - len(v)) for v in values])
+
+    hinges = [[self.hinge.get(b) for b in lv] for lv in levels]
+    self.levels = dict(
+        ids=padded(levels, nb).astype(np.int32),
+        parent=padded([[int(self.parent[b]) for b in lv] for lv in levels], 0).astype(np.int32),
+        pos=padded([[self.body_pos[b] for b in lv] for lv in levels],
+                   np.zeros(3)).astype(np.float32),
+        quat=padded([[self.body_quat[b] for b in lv] for lv in levels],
+                    np.array([1.0, 0.0, 0.0, 0.0])).astype(np.float32),
+        hinge=padded([[h is not None for h in hs] for hs in hinges], False).astype(np.float32),
+        qadr=padded([[h[0] if h else 0 for h in hs] for hs in hinges], 0).astype(np.int32),
+        axis=padded([[h[1] if h else (0.0, 0.0, 1.0) for h in hs] for hs in hinges],
+                    np.array([0.0, 0.0, 1.0])).astype(np.float32),
+        anchor=padded([[h[2] if h else (0.0, 0.0, 0.0) for h in hs] for hs in hinges],
+                      np.zeros(3)).astype(np.float32))
     robot_bodies = set(int(b) for b in self.body_ids)
     geoms = [g for g in range(m.ngeom) if int(m.geom_bodyid[g]) in robot_bodies
              and (m.geom_contype[g] or m.geom_conaffinity[g])]
@@ -111,12 +125,14 @@ class Kinematics:
     """World positions [nbody, 3] and orientations [nbody, 4] (rows of non-robot bodies 0).
 
     Bodies are processed one tree level at a time (7 levels for the T1), each level as one
-    vectorised gather/compute/scatter: far fewer ops to trace and compile than a per-body loop.
+    vectorised gather/compute/scatter inside a `lax.scan` over the levels.
     """
-    pos = jnp.zeros((self.nbody, 3), qpos.dtype).at[self.root].set(qpos[0:3])
-    quat = jnp.zeros((self.nbody, 4), qpos.dtype).at[:, 0].set(1.0)
+    pos = jnp.zeros((self.nbody + 1, 3), qpos.dtype).at[self.root].set(qpos[0:3])
+    quat = jnp.zeros((self.nbody + 1, 4), qpos.dtype).at[:, 0].set(1.0)
     quat = quat.at[self.root].set(qpos[3:7] / jnp.linalg.norm(qpos[3:7]))
-    for lv in self.levels:
+
+    def level(carry, lv):
+      pos, quat = carry
       ids, par = lv["ids"], lv["parent"]
       pq = quat[par]
       xq = quat_mul(pq, lv["quat"])
@@ -125,8 +141,11 @@ class Kinematics:
       rot = quat_mul(xq, axis_angle_quat(lv["axis"], angle))
       # Rotation about the joint anchor: the anchor stays where it was.
       xp = xp + jnp.einsum("bij,bj->bi", quat_to_mat(xq) - quat_to_mat(rot), lv["anchor"])
-      pos, quat = pos.at[ids].set(xp), quat.at[ids].set(rot)
-    return pos, quat
+      return (pos.at[ids].set(xp), quat.at[ids].set(rot)), None
+
+    levels = jax.tree_util.tree_map(jnp.asarray, self.levels)
+    (pos, quat), _ = jax.lax.scan(level, (pos, quat), levels)
+    return pos[:self.nbody], quat[:self.nbody]
 
   def geoms(self, qpos: jax.Array) -> tuple[jax.Array, jax.Array]:
     """World centres [ngeom_robot, 3] and rotation matrices [ngeom_robot, 3, 3]."""

@@ -55,6 +55,7 @@ from flax import struct
 
 from jax_env import robot
 from jax_env.config import TERRAINS, DRParam, StageConfig
+from jax_env.kinematics import quat_to_mat
 from jax_env.physics.view import ModelParams
 
 OBSTACLE_PARK = np.array([0.0, 0.0, -5.0], np.float32)  # far below the floor, touches nothing
@@ -167,11 +168,34 @@ def slope_gravity(slope, g: float):
   return g * v / jnp.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def _sample(key, p: DRParam, shape):
+def _sample(uniform, normal, p: DRParam):
+  """A DR parameter's draw from pre-drawn U(0, 1) and N(0, 1) variates of its shape."""
   lo, hi = p.range
   if p.distribution == "uniform":
-    return jax.random.uniform(key, shape, minval=lo, maxval=hi)
-  return lo + hi * jax.random.normal(key, shape)
+    return lo + (hi - lo) * uniform
+  return lo + hi * normal
+
+
+class _Variates:
+  """Consecutive columns of one uniform and one normal block drawn up front.
+
+  Every draw of an episode comes out of two PRNG calls instead of one call per parameter: each
+  call is a separate threefry kernel in the compiled reset, which runs inside every environment
+  step, so fewer calls compile markedly faster.
+  """
+
+  def __init__(self, key, batch: int, count: int):
+    ku, kn = jax.random.split(key)
+    self.uniform = jax.random.uniform(ku, (batch, count))
+    self.normal = jax.random.normal(kn, (batch, count))
+    self.batch, self.used = batch, 0
+
+  def take(self, shape: tuple[int, ...]) -> tuple[jax.Array, jax.Array]:
+    n = int(np.prod(shape, dtype=np.int64))
+    cols = slice(self.used, self.used + n)
+    self.used += n
+    reshape = lambda x: x[:, cols].reshape((self.batch,) + shape)
+    return reshape(self.uniform), reshape(self.normal)
 
 
 def _apply(nominal, value, p: DRParam | None):
@@ -212,32 +236,42 @@ class Randomizer:
     self.timestep = stage.sim.timestep
     self.max_delay_substeps = int(math.floor(stage.delay.max_s / self.timestep + 1e-9))
     weights = np.array([stage.terrain.weights[t] for t in TERRAINS], np.float32)
-    self.terrain_logits = np.log(np.maximum(weights, 1e-30))
+    self.terrain_weights = weights
     self.terrain_possible = weights > 0
     self.slope_max = math.radians(stage.terrain.slope_max_deg)
 
-  def draw(self, key: jax.Array, batch: int) -> EpisodeDraw:
-    """Fresh parameters for `batch` episodes from one key."""
-    keys = jax.random.split(key, 16)
+  def draw(self, key: jax.Array, batch: int, terrain: jax.Array | None = None) -> EpisodeDraw:
+    """Fresh parameters for `batch` episodes from one key.
+
+    `terrain` [batch] forces terrain indices into TERRAINS (−1: draw from the stage's mixture),
+    for evaluation; a forced slope still draws its angle U(0, slope_max_deg) and heading, and a
+    forced obstacle is placed as in training. It reuses the same variates, so no PRNG call is
+    added.
+    """
     nb, nj = len(self.body_ids), robot.NUM_JOINTS
     dr = self.dr.active
     n = self.nominal
+    # 3 terrain scalars, masses, centres of mass, gains, initial-state perturbations, then the
+    # delay, the terrain choice, the slope angle and its heading.
+    count = 3 + (1 + nb) + 3 * (1 + nb) + 2 * nj + nj + 2 + 3 + 4
+    variates = _Variates(key, batch, count)
 
-    def draw_or(name, k, shape, neutral):
+    def draw_or(name, shape, neutral):
       p = dr(name)
-      return (_sample(k, p, (batch,) + shape) if p is not None
+      u, z = variates.take(shape)
+      return (_sample(u, z, p) if p is not None
               else jnp.full((batch,) + shape, neutral, jnp.float32)), p
 
     # Terrain contact properties.
-    f_draw, f_p = draw_or("terrain_friction", keys[0], (), 0.0)
+    f_draw, f_p = draw_or("terrain_friction", (), 0.0)
     friction = (f_draw if f_p is not None and f_p.operation == "additive" else
                 self.floor_friction * f_draw if f_p is not None else
                 jnp.full((batch,), self.floor_friction))
     friction = jnp.maximum(friction, 0.0)
-    c_draw, c_p = draw_or("terrain_compliance", keys[1], (), 1.0)
+    c_draw, c_p = draw_or("terrain_compliance", (), 1.0)
     compliance = jnp.maximum(c_draw, 1e-3)  # additive onto 0 or scaling of 1: the draw itself
     e0 = self.floor_restitution
-    r_draw, r_p = draw_or("terrain_restitution", keys[2], (), e0)
+    r_draw, r_p = draw_or("terrain_restitution", (), e0)
     restitution = (r_draw * e0 if r_p is not None and r_p.operation == "scaling" else r_draw)
     restitution = jnp.clip(restitution, 0.0, 0.999)
     geom_friction = jnp.broadcast_to(n["geom_friction"], (batch,) + n["geom_friction"].shape)
@@ -254,15 +288,15 @@ class Randomizer:
 
     # Masses and centres of mass.
     is_trunk = (self.body_ids == self.trunk)[None, :]
-    tm, tm_p = draw_or("torso_mass", keys[3], (1,), 1.0)
-    om, om_p = draw_or("other_mass", keys[4], (nb,), 1.0)
+    tm, tm_p = draw_or("torso_mass", (1,), 1.0)
+    om, om_p = draw_or("other_mass", (nb,), 1.0)
     m0 = jnp.asarray(n["body_mass"][self.body_ids])
     trunk_mass = _mass(m0, tm, tm_p)
     other_mass = _mass(m0, om, om_p)
     mass = jnp.where(is_trunk, trunk_mass, other_mass)
     mass_scale = mass / m0
-    tc, tc_p = draw_or("torso_com", keys[5], (1, 3), 0.0)
-    oc, oc_p = draw_or("other_com", keys[6], (nb, 3), 0.0)
+    tc, tc_p = draw_or("torso_com", (1, 3), 0.0)
+    oc, oc_p = draw_or("other_com", (nb, 3), 0.0)
     ipos0 = jnp.asarray(n["body_ipos"][self.body_ids])
     ipos = jnp.where(is_trunk[..., None], _apply(ipos0, tc, tc_p), _apply(ipos0, oc, oc_p))
     com_offset = ipos - ipos0
@@ -274,30 +308,36 @@ class Randomizer:
     body_ipos = body_ipos.at[:, self.body_ids].set(ipos)
 
     # PD gains.
-    ks, ks_p = draw_or("joint_stiffness", keys[7], (nj,), 1.0)
-    ds, ds_p = draw_or("joint_damping", keys[8], (nj,), 1.0)
+    ks, ks_p = draw_or("joint_stiffness", (nj,), 1.0)
+    ds, ds_p = draw_or("joint_damping", (nj,), 1.0)
     kp = jnp.maximum(_apply(jnp.asarray(n["kp"]), ks, ks_p), 1e-3)
     kd = jnp.maximum(_apply(jnp.asarray(n["kd"]), ds, ds_p), 0.0)
 
     # Initial-state perturbations (applied by the scenario sampler).
-    dof, _ = draw_or("dof_position", keys[9], (nj,), 0.0 if self._additive("dof_position")
+    dof, _ = draw_or("dof_position", (nj,), 0.0 if self._additive("dof_position")
                      else 1.0)
-    bxy, _ = draw_or("base_xy_position", keys[10], (2,), 0.0)
-    blv, _ = draw_or("base_linear_velocity", keys[11], (3,), 0.0)
+    bxy, _ = draw_or("base_xy_position", (2,), 0.0)
+    blv, _ = draw_or("base_linear_velocity", (3,), 0.0)
 
     # Control delay, uniform over the whole timesteps 0..max.
-    delay_substeps = jax.random.randint(keys[12], (batch,), 0, self.max_delay_substeps + 1)
+    u, _ = variates.take((4,))
+    delay_substeps = jnp.minimum(jnp.floor(u[:, 0] * (self.max_delay_substeps + 1)),
+                                 self.max_delay_substeps)
 
-    # Terrain.
-    terrain = jax.random.categorical(keys[13], jnp.asarray(self.terrain_logits), shape=(batch,))
-    ka, kb = jax.random.split(keys[14])
-    angle = jax.random.uniform(ka, (batch,), maxval=self.slope_max)
-    heading = jax.random.uniform(kb, (batch,), maxval=2 * math.pi)
+    # Terrain: inverse CDF of the terrain weights (a zero weight is never chosen).
+    cdf = np.cumsum(self.terrain_weights)
+    edges = jnp.asarray(cdf[:-1] / cdf[-1], jnp.float32)
+    forced, terrain = terrain, jnp.sum(u[:, 1:2] >= edges, axis=-1)
+    if forced is not None:
+      terrain = jnp.where(forced >= 0, forced, terrain)
+    angle = u[:, 2] * self.slope_max
+    heading = u[:, 3] * (2 * math.pi)
     on_slope = terrain == TERRAINS.index("slope")
     slope = jnp.where(on_slope[:, None],
                       jnp.stack([angle * jnp.cos(heading), angle * jnp.sin(heading)], -1), 0.0)
     gravity = slope_gravity(slope, self.g)
     obstacle = (terrain == TERRAINS.index("obstacle")).astype(jnp.float32)
+    assert variates.used == count, "every variate column is drawn once"
 
     params = ModelParams(
         geom_friction=geom_friction, geom_solref=geom_solref, body_mass=body_mass,
@@ -346,6 +386,12 @@ class PushState:
   end_step: jax.Array  # [B] int32, the current push is applied while step < end_step
   force: jax.Array  # [B, 3] world frame, N
   torque: jax.Array  # [B, 3] world frame, N·m
+  # The evaluation protocols' scheduled push (zero / never in training): a force fixed in the
+  # Trunk frame, rotated into the world frame with the Trunk's orientation at every control step
+  # while scheduled_start <= step < scheduled_end.
+  local_force: jax.Array  # [B, 3] Trunk frame, N
+  scheduled_start: jax.Array  # [B] int32 control step
+  scheduled_end: jax.Array  # [B] int32 control step (exclusive)
 
 
 class Pusher:
@@ -373,7 +419,9 @@ class Pusher:
     never = jnp.full((batch,), jnp.iinfo(jnp.int32).max, jnp.int32)
     first = control_start + self._interval_steps(keys) if self.enabled else never
     return PushState(next_step=first, end_step=jnp.zeros((batch,), jnp.int32),
-                     force=jnp.zeros((batch, 3)), torque=jnp.zeros((batch, 3)))
+                     force=jnp.zeros((batch, 3)), torque=jnp.zeros((batch, 3)),
+                     local_force=jnp.zeros((batch, 3)), scheduled_start=never,
+                     scheduled_end=never)
 
   def _draw_one(self, key):
     k1, k2, k3, k4 = jax.random.split(key, 4)
@@ -393,9 +441,18 @@ class Pusher:
     k_draw, k_next = jax.vmap(lambda k: tuple(jax.random.split(k)))(keys)
     start = step >= push.next_step
     force, torque = jax.vmap(self._draw_one)(k_draw)
-    push = PushState(
+    push = push.replace(
         next_step=jnp.where(start, step + self._interval_steps(k_next), push.next_step),
         end_step=jnp.where(start, step + self.duration_steps, push.end_step),
         force=jnp.where(start[:, None], force, push.force),
         torque=jnp.where(start[:, None], torque, push.torque))
     return push, step < push.end_step
+
+  @staticmethod
+  def scheduled(push: PushState, step, trunk_quat):
+    """The scheduled push in the world frame [B, 3] during control step `step` [B], rotated with
+    the Trunk orientation `trunk_quat` [B, 4] (w, x, y, z) at the step's start, and whether it
+    acts [B]."""
+    on = (step >= push.scheduled_start) & (step < push.scheduled_end)
+    world = jnp.einsum("...ij,...j->...i", quat_to_mat(trunk_quat), push.local_force)
+    return jnp.where(on[:, None], world, 0.0), on

@@ -52,6 +52,7 @@ class InitialState:
   mocap_pos: jax.Array  # [B, nmocap, 3]
   scenario: jax.Array  # [B] int32 index into SCENARIOS
   settles: jax.Array  # [B] bool: the episode starts with settle_s of settling
+  geom_lowest: jax.Array  # [B, ngeom_robot] lowest z of each robot collision geom (Kinematics)
 
 
 @struct.dataclass
@@ -98,7 +99,13 @@ class ScenarioSampler:
     self.obstacle_radius = float(mj_model.geom_size[geom, 0])
     self.ankles = (int(mj_model.body("Ankle_Cross_Left").id),
                    int(mj_model.body("Ankle_Cross_Right").id))
-    self._poses = [self._pose_fn(s) for s in SCENARIOS]
+    # One `lax.switch` branch per pose family: the KSI keyframes share one branch (they differ
+    # only in a gathered keyframe row), as do supine and prone. Under vmap every branch is
+    # evaluated, so fewer branches mean a smaller reset to compile (and to run).
+    families = [self._family(s) for s in SCENARIOS]
+    unique = list(dict.fromkeys(families))
+    self._branch = np.array([unique.index(f) for f in families], np.int32)
+    self._poses = [self._pose_fn(f) for f in unique]
 
   # -- poses (one env, before heading, DR and placement) ----------------------------------------
 
@@ -108,8 +115,16 @@ class ScenarioSampler:
   def _set(self, q, name, value):
     return q.at[self.j[name]].set(value)
 
-  def _pose_fn(self, scenario: str):
-    """The pose sampler of one scenario: `_Noise` -> `_Pose`.
+  @staticmethod
+  def _family(scenario: str) -> str:
+    if scenario in KSI_SCENARIOS:
+      return "ksi"
+    if scenario in ("supine", "prone"):
+      return "lying"
+    return scenario
+
+  def _pose_fn(self, family: str):
+    """The pose sampler of one pose family: (`_Noise`, scenario index) -> `_Pose`.
 
     Every scenario reads the same pre-drawn noise (one uniform and one normal draw per env), so
     the `lax.switch` over scenarios holds arithmetic only: a dozen branches each with their own
@@ -122,26 +137,32 @@ class ScenarioSampler:
     def between(u, a, b):
       return a + (b - a) * u
 
-    if scenario in KSI_SCENARIOS:
-      qpos = jnp.asarray(self.key_qpos[KSI_SCENARIOS.index(scenario)])
+    if family == "ksi":
+      # Row i of the table is the keyframe of SCENARIOS[i] (zeros for other scenarios).
+      table = np.zeros((len(SCENARIOS), self.key_qpos.shape[1]), np.float32)
+      for i, name in enumerate(KSI_SCENARIOS):
+        table[SCENARIOS.index(name)] = self.key_qpos[i]
+      table = jnp.asarray(table)
 
-      def ksi(z):
+      def ksi(z, scenario):
+        qpos = table[scenario]
         return _Pose(self._clip(qpos[7:] + self.noise * z.normal), qpos[3:7], rest)
       return ksi
 
-    if scenario in ("supine", "prone"):
+    if family == "lying":
       # Supine lies on the back (the torso's x axis points up), prone on the front.
-      pitch = jnp.float32(-math.pi / 2 if scenario == "supine" else math.pi / 2)
+      supine = SCENARIOS.index("supine")
 
-      def lying(z):
+      def lying(z, scenario):
+        pitch = jnp.where(scenario == supine, -math.pi / 2, math.pi / 2)
         q = stand + between(z.joints, -0.1, 0.1)
         tilt = between(z.u[0], -0.1, 0.1)
         quat = quat_mul(axis_angle_quat(_X, tilt), axis_angle_quat(_Y, pitch))
         return _Pose(self._clip(q), quat, rest)
       return lying
 
-    if scenario == "lateral":
-      def lateral(z):
+    if family == "lateral":
+      def lateral(z, scenario):
         side = jnp.where(z.u[0] < 0.5, 1.0, -1.0)
         q = stand + between(z.joints, -0.3, 0.3)
         lean = between(z.u[1], -0.3, 0.3)
@@ -149,8 +170,8 @@ class ScenarioSampler:
         return _Pose(self._clip(q), quat, rest)
       return lateral
 
-    if scenario == "sitting":
-      def sitting(z):
+    if family == "sitting":
+      def sitting(z, scenario):
         lean = between(z.u[0], 0.1, 0.5)  # the torso leans back
         hip = -math.pi / 2 + lean + between(z.u[1], -0.2, 0.2)  # thighs along the floor
         knee, ankle = between(z.u[2], 0.2, 1.4), between(z.u[3], -0.5, 0.3)
@@ -165,8 +186,8 @@ class ScenarioSampler:
         return _Pose(self._clip(q), axis_angle_quat(_Y, -lean), rest)
       return sitting
 
-    if scenario == "crossed_legs":
-      def crossed(z):
+    if family == "crossed_legs":
+      def crossed(z, scenario):
         pitch = jnp.where(z.u[0] < 0.5, -math.pi / 2, math.pi / 2)  # on the back or front
         # Both hips roll inward, up to their limits, and one leg lies over the other.
         left_on_top = z.u[1] < 0.5
@@ -184,14 +205,14 @@ class ScenarioSampler:
         return _Pose(self._clip(q), axis_angle_quat(_Y, pitch), rest)
       return crossed
 
-    if scenario == "random_drop":
-      def drop(z):
+    if family == "random_drop":
+      def drop(z, scenario):
         quat = z.quat / jnp.maximum(jnp.linalg.norm(z.quat), 1e-6)  # uniform on SO(3)
         q = between(z.joints, lo, hi)
         return _Pose(q, quat, between(z.u[0], *DROP_HEIGHT))
       return drop
 
-    raise ValueError(f"unknown scenario {scenario!r}; valid: {', '.join(SCENARIOS)}")
+    raise ValueError(f"unknown pose family {family!r}")
 
   # -- batch sampling --------------------------------------------------------------------------
 
@@ -213,7 +234,7 @@ class ScenarioSampler:
     normal = jax.random.normal(k_n, (4 + nj,))
     z = _Noise(u=u[:8], joints=u[8:], normal=normal[:nj], quat=normal[nj:])
     yaw = 2 * math.pi * u[7]
-    pose = jax.lax.switch(scenario, self._poses, z)
+    pose = jax.lax.switch(jnp.asarray(self._branch)[scenario], self._poses, z, scenario)
     q = self._clip(self.randomizer.perturb_joints(pose.joints, dof_draw))
     # With the ball between the legs, spread the legs so it fits (hip roll outward).
     spread = OBSTACLE_LEG_SPREAD * obstacle
@@ -223,7 +244,8 @@ class ScenarioSampler:
     xy, lin_vel = self.randomizer.perturb_base(jnp.zeros(2), jnp.zeros(3), xy_draw, vel_draw)
     qpos = jnp.concatenate([xy, jnp.zeros(1), quat, q])
     bpos, bquat = self.kin.bodies(qpos)  # at base height 0
-    lift = pose.clearance - self.kin.lowest_point_of(bpos, bquat)
+    low = self.kin.geom_lowest_of(bpos, bquat)
+    lift = pose.clearance - jnp.min(low)
     qpos = qpos.at[2].set(lift)
     qvel = jnp.zeros(self.nv).at[0:3].set(lin_vel)
     mocap = jnp.broadcast_to(jnp.asarray(OBSTACLE_PARK), (self.nmocap, 3))
@@ -234,4 +256,4 @@ class ScenarioSampler:
                                                           jnp.asarray(OBSTACLE_PARK)))
     settles = jnp.asarray(self.settles)[scenario]
     return InitialState(qpos=qpos, qvel=qvel, mocap_pos=mocap, scenario=scenario,
-                        settles=settles)
+                        settles=settles, geom_lowest=low + lift)

@@ -29,6 +29,14 @@ pub enum Command {
     Act(ActArgs),
     /// Measure physics and learner throughput (raw mujoco.batch, native env, MJX env, learner).
     Bench(BenchArgs),
+    /// Evaluate a policy with the paper's simulation protocols (success rate, recovery time).
+    Eval(EvalArgs),
+    /// Record one episode of a policy as an MCAP file for Foxglove (optionally a video).
+    Rollout(RolloutArgs),
+    /// Plots and a markdown summary of a run (learning curves, evaluations).
+    Report(ReportArgs),
+    /// Export a checkpoint's deployable actor as ONNX, checked against `hifar act`.
+    Export(ExportArgs),
     /// List runs, or show one.
     Runs(RunsArgs),
 }
@@ -144,4 +152,105 @@ pub enum RunsCommand {
     Show {
         run: PathBuf,
     },
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ProtocolArg {
+    /// The paper's protocols, every cell (minutes on a GPU, longer on a CPU).
+    Paper,
+    /// A reduced protocol for CI and smoke checks.
+    Quick,
+}
+
+impl ProtocolArg {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ProtocolArg::Paper => "paper",
+            ProtocolArg::Quick => "quick",
+        }
+    }
+}
+
+#[derive(Debug, Args)]
+pub struct EvalArgs {
+    /// A checkpoint directory, or a run directory (its last stage's final checkpoint).
+    pub target: PathBuf,
+    /// Which protocol set to run.
+    #[arg(long, value_enum, default_value = "paper")]
+    pub protocol: ProtocolArg,
+    /// Trials per protocol cell [default: 100 for paper, 8 for quick].
+    #[arg(long, value_name = "N")]
+    pub trials: Option<u32>,
+    /// Physics backend [default: the machine's default, see `hifar doctor`].
+    #[arg(long, value_enum)]
+    pub backend: Option<BackendArg>,
+    /// Seed of every random draw of the evaluation.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub seed: u64,
+    /// Output directory [default: <run>/eval/<protocol>-<backend> or <checkpoint>/eval/<protocol>-<backend>].
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Replace an existing output directory.
+    #[arg(long)]
+    pub force: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct RolloutArgs {
+    /// A checkpoint directory, or a run directory (its last stage's final checkpoint).
+    pub target: PathBuf,
+    /// Initial scenario (supine, prone, lateral, sitting, crossed_legs, random_drop, ksi_*).
+    #[arg(long, default_value = "supine")]
+    pub scenario: String,
+    /// A push of this many newtons 0.8 s into the recovery, for 200 ms, as in the paper.
+    #[arg(long, value_name = "N")]
+    pub push_force: Option<f64>,
+    /// Push direction in the torso frame [default: forward from prone, backward otherwise].
+    #[arg(long, value_name = "DIR")]
+    pub push_direction: Option<String>,
+    /// Terrain: flat, slope or obstacle.
+    #[arg(long, default_value = "flat")]
+    pub terrain: String,
+    /// Seed of the episode's random draws.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub seed: u64,
+    /// Physics backend [default: the machine's default, see `hifar doctor`].
+    #[arg(long, value_enum)]
+    pub backend: Option<BackendArg>,
+    /// Episode length in seconds [default: the stage's episode_s].
+    #[arg(long, value_name = "S")]
+    pub duration: Option<f64>,
+    /// Output MCAP file.
+    #[arg(long, value_name = "FILE")]
+    pub out: PathBuf,
+    /// Also render an MP4 video (needs an offscreen GL backend: EGL or OSMesa).
+    #[arg(long, value_name = "FILE")]
+    pub video: Option<PathBuf>,
+    /// Also render a PNG filmstrip of snapshots (needs an offscreen GL backend).
+    #[arg(long, value_name = "FILE")]
+    pub filmstrip: Option<PathBuf>,
+    /// Replace existing output files.
+    #[arg(long)]
+    pub force: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct ReportArgs {
+    /// Run directory.
+    pub run: PathBuf,
+    /// Output directory [default: <run>/report].
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
+pub struct ExportArgs {
+    /// A checkpoint directory, or a run directory (its last stage's final checkpoint).
+    pub target: PathBuf,
+    /// Output ONNX file.
+    #[arg(long, value_name = "FILE")]
+    pub onnx: PathBuf,
+    /// Replace an existing output file.
+    #[arg(long)]
+    pub force: bool,
 }

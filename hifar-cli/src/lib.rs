@@ -12,6 +12,7 @@ pub mod error;
 pub mod metrics;
 pub mod paths;
 pub mod python;
+pub mod recording;
 pub mod robot;
 pub mod run_dir;
 pub mod terminal;

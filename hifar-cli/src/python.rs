@@ -37,6 +37,9 @@ def activate(venv, site_dir, cache_dir):
   sys.prefix = sys.exec_prefix = venv
   sys.executable = os.path.join(venv, "bin", "python")
   os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", cache_dir)
+  # XLA's C++ logs one warning per executable loaded from that cache ("Assume version
+  # compatibility"); errors still show.
+  os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 
 def release_signals():
   import signal
@@ -248,9 +251,9 @@ impl Facade {
         })
     }
 
-    /// `facade.train_stage(request, callback)`: `callback` sees every progress dict and answers
-    /// "continue", "finish" or "interrupt".
-    pub fn train_stage<F>(&self, request: &Value, callback: F) -> PyOutcome<Value>
+    /// `facade.<name>(request, callback)`: `callback` sees every progress dict Python reports
+    /// and answers with a word the function understands ("continue", "finish", "interrupt").
+    pub fn call_with_progress<F>(&self, name: &str, request: &Value, callback: F) -> PyOutcome<Value>
     where
         F: FnMut(Value) -> String + Send + 'static,
     {
@@ -267,15 +270,20 @@ impl Facade {
                         PyResult::Ok((callback)(progress))
                     },
                 )?;
-                let result = self
-                    .module
-                    .bind(py)
-                    .getattr("train_stage")?
-                    .call1((to_py(py, request)?, function))?;
+                let result = self.module.bind(py).getattr(name)?.call1((to_py(py, request)?, function))?;
                 to_json(&result)
             };
             run().map_err(|err| PythonError::from_pyerr(py, err))
         })
+    }
+
+    /// `facade.train_stage(request, callback)`: `callback` sees every progress dict and answers
+    /// "continue", "finish" or "interrupt".
+    pub fn train_stage<F>(&self, request: &Value, callback: F) -> PyOutcome<Value>
+    where
+        F: FnMut(Value) -> String + Send + 'static,
+    {
+        self.call_with_progress("train_stage", request, callback)
     }
 }
 

@@ -95,6 +95,17 @@ fn dup2(from: i32, to: i32) -> io::Result<()> {
     Ok(())
 }
 
+/// A flag raised by the first SIGINT or SIGTERM, which long commands poll to stop cleanly
+/// (checkpoint, or write nothing); a second signal while the first is handled exits at once.
+pub fn interrupt_flag() -> io::Result<Arc<std::sync::atomic::AtomicBool>> {
+    let flag = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register_conditional_shutdown(signal, 130, Arc::clone(&flag))?;
+        signal_hook::flag::register(signal, Arc::clone(&flag))?;
+    }
+    Ok(flag)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

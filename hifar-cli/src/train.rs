@@ -144,7 +144,7 @@ pub fn run(args: &TrainArgs) -> Result<()> {
         .map_err(|err| python_failure("cannot redirect Python output", err, &run.log_path()))?;
     crate::python::release_signals()
         .map_err(|err| python_failure("cannot reset Python's signal handlers", err, &run.log_path()))?;
-    let interrupt = install_signal_handlers()?;
+    let interrupt = crate::terminal::interrupt_flag()?;
     let capture = Capture::start(&run.log_path())
         .with_context(|| format!("cannot send output to {}", run.log_path().display()))?;
     let outcome = train_stages(&facade, &plan, &run, &mut manifest, &interrupt, &capture.console());
@@ -342,15 +342,6 @@ impl From<anyhow::Error> for StageFailure {
     }
 }
 
-fn install_signal_handlers() -> Result<Arc<AtomicBool>> {
-    let flag = Arc::new(AtomicBool::new(false));
-    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        // A second signal while the first is being handled ends the process at once.
-        signal_hook::flag::register_conditional_shutdown(signal, 130, Arc::clone(&flag))?;
-        signal_hook::flag::register(signal, Arc::clone(&flag))?;
-    }
-    Ok(flag)
-}
 
 fn train_stages(
     facade: &Facade,

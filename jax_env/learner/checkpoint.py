@@ -54,6 +54,8 @@ from jax_env.learner import ppo as ppo_lib
 FORMAT_VERSION = 1
 PARAMS_FILE = "params.safetensors"
 META_FILE = "checkpoint.json"
+# checkpoint.json key of the stage table (curriculum `[[stage]]`) the checkpoint was trained on.
+STAGE_CONFIG_KEY = "stage_config"
 ROLLOUT_FILE = "rollout_state.safetensors"
 LATEST_FILE = "LATEST"
 LOG_INITIAL_ACTION_STD = "log_initial_action_std"

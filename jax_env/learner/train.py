@@ -171,7 +171,9 @@ def _shard(tree, n: int):
 
 
 def _unshard(tree):
-  return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), tree)
+  # Explicit sizes: a -1 cannot be inferred for empty arrays (the history without RMA).
+  return jax.tree_util.tree_map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:]),
+                                tree)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -276,7 +278,8 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
                 num_envs: int | None = None, init_checkpoint: str | Path | None = None,
                 resume_checkpoint: str | Path | None = None,
                 callback: Callable[[dict], str] | None = None, log_file: str | Path | None = None,
-                devices: list | None = None) -> dict:
+                devices: list | None = None, stage_config: Mapping[str, Any] | None = None
+                ) -> dict:
   """Trains one stage; returns {"status", "checkpoint", "env_steps"}.
 
   Args:
@@ -295,6 +298,8 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
       since the deployable actor needs it) or "interrupt" (checkpoint and return now).
     log_file: the run's log, to which the learner appends what it did.
     devices: local devices to split the batch over (default: all).
+    stage_config: the stage table the env was built from, recorded in every checkpoint
+      (`stage_config`) so that evaluation, rollouts and export can rebuild the environment.
 
   Status: "completed" (budget spent), "finished_early" (the callback said "finish"),
   "interrupted".
@@ -398,6 +403,8 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
     extra = {"learner": dict(counters, num_envs=batch, devices=n_dev,
                              initial_action_std=p.initial_action_std,
                              ppo_budget=ppo_budget, adaptation_budget=adapt_budget)}
+    if stage_config is not None:
+      extra[ckpt_lib.STAGE_CONFIG_KEY] = dict(stage_config)
     ckpt_lib.save(directory, state=host_learner, config=net_cfg, stage=config.stage_name,
                   env_steps=steps, iteration=counters["iteration"], seed=seed, key=key,
                   obs_names=names[0], privileged_names=names[1], action_names=names[2],

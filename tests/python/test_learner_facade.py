@@ -72,6 +72,7 @@ def test_train_stage_smoke_on_the_real_env(tmp_path):
   assert meta["obs_names"] == names["obs_names"]
   assert meta["action"] == {"mapping": "current", "scale": 0.5, "clip": 1.0}
   assert meta["stage"] == "planar" and meta["seed"] == 7
+  assert meta["stage_config"] == stage  # evaluation and export rebuild the env from it
   assert "[learner]" in log.read_text()
 
   n_obs = len(names["obs_names"])

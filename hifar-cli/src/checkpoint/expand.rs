@@ -61,6 +61,9 @@ impl fmt::Display for ExpandReport {
     }
 }
 
+/// `checkpoint.json` key holding the stage table the checkpoint's features come from.
+pub const STAGE_CONFIG_KEY: &str = "stage_config";
+
 /// Expands the checkpoint in `src` for a stage with the feature names `target` and writes the
 /// result to `out_dir` (which must not exist). `rollout_state` is not carried over: a new stage
 /// starts fresh rollouts.
@@ -71,14 +74,18 @@ pub fn expand(
     log_initial_action_std: f64,
     out_dir: &Path,
 ) -> Result<ExpandReport, CheckpointError> {
-    let checkpoint = load(src)?;
+    let mut checkpoint = load(src)?;
+    // The source stage's table no longer describes the expanded checkpoint.
+    checkpoint.meta.extra.remove(STAGE_CONFIG_KEY);
     expand_loaded(checkpoint, target, stage_name, log_initial_action_std, None, out_dir)
 }
 
 /// [`expand`] for a curriculum stage: also refuses a change of hidden sizes, activation or RMA
 /// layout, and records the stage's action mapping in the expanded checkpoint.
 pub fn expand_to_stage(src: &Path, stage: &Stage, out_dir: &Path) -> Result<ExpandReport, CheckpointError> {
-    let checkpoint = load(src)?;
+    let mut checkpoint = load(src)?;
+    // Evaluation, rollouts and export rebuild the environment from this table.
+    checkpoint.meta.extra.insert(STAGE_CONFIG_KEY.to_owned(), stage.to_json());
     let incompatible = |message: String| CheckpointError::Incompatible {
         source_dir: src.to_path_buf(),
         stage: stage.name().to_owned(),

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use safetensors::{Dtype, SafeTensors, View};
 
 pub use crate::curriculum::{FeatureKind, FeatureNames};
-pub use expand::{expand, expand_to_stage, ExpandReport};
+pub use expand::{expand, expand_to_stage, ExpandReport, STAGE_CONFIG_KEY};
 pub use meta::{ActionMeta, CheckpointMeta, Fill, Network, Segment, TensorMeta, FORMAT_VERSION};
 
 pub const META_FILE: &str = "checkpoint.json";

@@ -12,9 +12,14 @@ pub mod act;
 pub mod bench;
 pub mod check;
 pub mod doctor;
+pub mod eval;
 pub mod expand;
+pub mod export;
+pub mod report;
+pub mod rollout;
 pub mod runs;
 pub mod setup;
+pub mod target;
 
 pub fn run(cli: Cli) -> Result<()> {
     match cli.command {
@@ -25,6 +30,10 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::ExpandCheckpoint(args) => expand::run(&args),
         Command::Act(args) => act::run(&args),
         Command::Bench(args) => bench::run(&args),
+        Command::Eval(args) => eval::run(&args),
+        Command::Rollout(args) => rollout::run(&args),
+        Command::Report(args) => report::run(&args),
+        Command::Export(args) => export::run(&args),
         Command::Runs(args) => runs::run(&args),
     }
 }
@@ -68,6 +77,16 @@ impl Drop for Status {
             bar.finish_and_clear();
         }
     }
+}
+
+/// The physics backend `backend = "auto"` means on this machine (`facade.doctor()`).
+pub fn default_backend(facade: &crate::python::Facade, log: &std::path::Path) -> Result<String> {
+    let report = facade.call("doctor", &[]).map_err(|err| python_failure("facade.doctor() failed", err, log))?;
+    report
+        .get("default_backend")
+        .and_then(serde_json::Value::as_str)
+        .map(str::to_owned)
+        .ok_or_else(|| anyhow::anyhow!("facade.doctor() returned no default_backend: {report}"))
 }
 
 /// Turns a Python exception into a one-line error, its traceback appended to `log`.

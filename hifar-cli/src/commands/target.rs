@@ -1,0 +1,69 @@
+//! The policy a command acts on: a checkpoint directory, or a run directory standing for its
+//! newest finished stage's final checkpoint.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Result;
+use serde_json::Value;
+
+use crate::checkpoint::{self, CheckpointMeta};
+use crate::run_dir::{Manifest, MANIFEST};
+use crate::{bad_input, paths};
+
+/// A resolved `CKPT|RUN` argument.
+#[derive(Debug, Clone)]
+pub struct PolicyTarget {
+    /// The checkpoint directory (absolute).
+    pub checkpoint: PathBuf,
+    pub meta: CheckpointMeta,
+    /// The run directory when the argument named one (absolute).
+    pub run: Option<PathBuf>,
+    /// For a run, the checkpoint's stage table from the run's resolved curriculum; for a bare
+    /// checkpoint None (Python then reads the checkpoint's own `stage_config`).
+    pub stage: Option<Value>,
+}
+
+impl PolicyTarget {
+    /// The stage table the environment will be rebuilt from, if any is known.
+    pub fn known_stage(&self) -> Option<&Value> {
+        self.stage.as_ref().or_else(|| self.meta.extra.get(checkpoint::STAGE_CONFIG_KEY))
+    }
+}
+
+pub fn resolve(target: &Path) -> Result<PolicyTarget> {
+    let shown = target.display();
+    if target.join(MANIFEST).is_file() {
+        let run = paths::absolute(target.to_path_buf());
+        let manifest = Manifest::read(&run)?;
+        let Some(relative) = manifest.stages.iter().rev().find_map(|s| s.final_checkpoint.clone()) else {
+            return Err(bad_input!("{shown}: the run has no finished stage yet (no final checkpoint in {MANIFEST})"));
+        };
+        let checkpoint = run.join(relative);
+        let meta = checkpoint::read_meta(&checkpoint)?;
+        let stage = Some(stage_table(&manifest, &run, &meta.stage)?);
+        return Ok(PolicyTarget { checkpoint, meta, run: Some(run), stage });
+    }
+    if target.join("checkpoint.json").is_file() {
+        let meta = checkpoint::read_meta(target)?;
+        return Ok(PolicyTarget { checkpoint: paths::absolute(target.to_path_buf()), meta, run: None, stage: None });
+    }
+    if !target.exists() {
+        return Err(bad_input!("{shown}: no such checkpoint or run directory"));
+    }
+    Err(bad_input!("{shown}: neither a run directory ({MANIFEST}) nor a checkpoint directory (checkpoint.json)"))
+}
+
+/// The stage table named `stage` in a run's resolved curriculum.
+fn stage_table(manifest: &Manifest, run: &Path, stage: &str) -> Result<Value> {
+    let stages = manifest.curriculum.resolved.get("stage").and_then(Value::as_array);
+    let named = |s: &&Value| s.get("name").and_then(Value::as_str) == Some(stage);
+    stages.into_iter().flatten().find(named).cloned().ok_or_else(|| {
+        let names: Vec<&str> =
+            stages.into_iter().flatten().filter_map(|s| s.get("name").and_then(Value::as_str)).collect();
+        bad_input!(
+            "{}: the checkpoint's stage {stage:?} is not in the run's curriculum (stages: {})",
+            run.display(),
+            names.join(", ")
+        )
+    })
+}

@@ -1,0 +1,90 @@
+"""A checkpoint's deployable actor, and the stage its environment is rebuilt from.
+
+Evaluation, recordings and export act exactly as the robot would: observations and their
+history in, the adaptation module's latent and the base policy's mean out (no privileged
+inputs, no sampling). The history is updated the way the learner updates it in training.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+
+from jax_env.learner import checkpoint as ckpt_lib
+from jax_env.learner import networks as nets_lib
+
+
+@dataclasses.dataclass(frozen=True)
+class Policy:
+  """A loaded checkpoint: its metadata, networks, parameters and the deterministic actor."""
+
+  directory: Path
+  meta: dict
+  nets: nets_lib.Networks
+  params: Any
+  normalizer: Any
+
+  @property
+  def history_len(self) -> int:
+    return self.nets.config.history_len
+
+  @property
+  def obs_size(self) -> int:
+    return self.nets.config.obs_size
+
+  def act(self, obs: jax.Array, history: jax.Array) -> jax.Array:
+    """Deterministic actions [B, n_act] (unclipped mean; the env clips). Pure, jit-able."""
+    return nets_lib.deployable_mean(self.nets, self.params, self.normalizer, obs, history)
+
+  def initial_history(self, batch: int) -> jax.Array:
+    """The history an episode starts with in training: zeros [B, H, n_obs]."""
+    return jnp.zeros((batch, self.history_len, self.obs_size), jnp.float32)
+
+
+def load(checkpoint_dir: str | Path) -> Policy:
+  d = Path(checkpoint_dir)
+  ck = ckpt_lib.load(d)
+  nets = nets_lib.Networks(ck.network_config())
+  params, normalizer = ckpt_lib.restore_params(nets, ck.tensors)
+  return Policy(directory=d, meta=ckpt_lib.read_meta(d), nets=nets, params=params,
+                normalizer=normalizer)
+
+
+def stage_of(policy: Policy, stage: dict | None) -> dict:
+  """The stage table to rebuild the environment from: the given one, else the checkpoint's."""
+  if stage is None:
+    stage = policy.meta.get(ckpt_lib.STAGE_CONFIG_KEY)
+  if stage is None:
+    raise ValueError(f"{policy.directory}: checkpoint.json has no {ckpt_lib.STAGE_CONFIG_KEY!r}; "
+                     "pass the run directory instead (its curriculum names the stage)")
+  return stage
+
+
+def check_features(policy: Policy, env) -> None:
+  """The environment must produce exactly the observations the policy was trained on."""
+  names = tuple(policy.meta["obs_names"])
+  if names != tuple(env.obs_names):
+    raise ValueError(f"{policy.directory}: the checkpoint's obs_names ({len(names)}) differ from "
+                     f"the stage's ({len(env.obs_names)}); evaluate it with the stage it was "
+                     "trained in")
+  if tuple(policy.meta["action_names"]) != tuple(env.action_names):
+    raise ValueError(f"{policy.directory}: the checkpoint's action_names differ from the stage's")
+
+
+def episode_step(policy: Policy, env) -> Callable:
+  """(env_state, history) -> (env_state, history): one control step of the deployable actor.
+
+  Compose it with `jax.lax.scan`; the history resets where an episode ended, as in training.
+  """
+
+  def step(carry):
+    state, history = carry
+    action = policy.act(state.obs, history)
+    nxt = env.step(state, action)
+    return nxt, nets_lib.push_history(history, state.obs, nxt.done)
+
+  return step

@@ -1,0 +1,312 @@
+"""Runs an evaluation protocol on a checkpoint: eval.json, eval.csv and eval.md
+(docs/contracts.md, "facade.evaluate").
+
+Every trial is one episode of the checkpoint's deployable actor in the nominal environment
+(conditions.evaluation_stage) under its cell's condition. All trials of all cells form one list
+that is cut into batches of a fixed size (the last padded with repeats whose results are
+dropped), and one compiled rollout runs every batch: cells differ only in data (scenario and
+terrain indices, physical parameters, push schedule), so the protocol compiles once. Trial t of
+cell c uses key t of split(fold_in(seed_key(seed), c), trials), so a result does not depend on
+the batch size or on the other cells.
+
+Success and recovery time are the env's own `episode_metrics` of each env's first episode: the
+rollout runs exactly `episode_steps` control steps, so every first episode ends at the last step
+(or earlier on a numerical blow-up, which counts as a failure).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+from pathlib import Path
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jax_env.evaluation import conditions as cond_lib
+from jax_env.evaluation import policy as policy_lib
+from jax_env.evaluation import protocols as proto_lib
+from jax_env.evaluation import stats
+
+FORMAT_VERSION = 1
+FILES = ("eval.json", "eval.csv", "eval.md")
+DEFAULT_BATCH = {"mjx": 1024, "native": 128}
+_REQUEST_KEYS = ("checkpoint", "stage", "protocol", "trials", "backend", "seed", "out_dir",
+                 "batch_size")
+_BACKENDS = ("mjx", "native")
+CSV_FIELDS = ("experiment", "scenario", "setting", "value", "trials", "successes",
+              "success_rate", "ci_low", "ci_high", "recovery_time_mean", "recovery_time_std",
+              "paper_success_rate", "paper_recovery_time_mean", "paper_recovery_time_std")
+EXPERIMENT_TITLES = {
+    "standard": "Standard supine and prone recovery",
+    "planar_push": "Planar push (forward from prone, backward from supine; 0.8 s after the "
+                   "recovery starts, 200 ms)",
+    "lateral_push": "Lateral push (leftward; 0.8 s after the recovery starts, 200 ms)",
+    "load": "Extra torso mass",
+    "friction": "Floor friction coefficient",
+    "torque_limit": "Torque limit (fraction of the stage's actuator limits)",
+    "random_initial": "Random initial states",
+    "terrain": "Terrain",
+}
+
+# Compiled rollouts by (checkpoint, its mtime, stage, backend, batch): a second evaluation of the
+# same policy in the same process (tests, a report that evaluates twice) does not recompile.
+_ROLLOUTS: dict = {}
+
+
+def _validate(request: dict) -> dict:
+  unknown = sorted(set(request) - set(_REQUEST_KEYS))
+  if unknown:
+    raise ValueError(f"evaluate: unknown request key(s) {', '.join(unknown)}; valid: "
+                     f"{', '.join(_REQUEST_KEYS)}")
+  for key in ("checkpoint", "protocol", "backend", "out_dir"):
+    if request.get(key) is None:
+      raise ValueError(f"evaluate: request key {key!r} is required")
+  protocol = request["protocol"]
+  if protocol not in proto_lib.PROTOCOLS:
+    raise ValueError(f"evaluate: unknown protocol {protocol!r}; valid: "
+                     f"{', '.join(proto_lib.PROTOCOLS)}")
+  backend = request["backend"]
+  if backend not in _BACKENDS:
+    raise ValueError(f"evaluate: unknown backend {backend!r}; valid: {', '.join(_BACKENDS)}")
+  trials = request.get("trials")
+  trials = proto_lib.DEFAULT_TRIALS[protocol] if trials is None else int(trials)
+  if trials < 1:
+    raise ValueError(f"evaluate: trials {trials} must be >= 1")
+  batch = request.get("batch_size")
+  if batch is not None and int(batch) < 1:
+    raise ValueError(f"evaluate: batch_size {batch} must be >= 1")
+  seed = int(request.get("seed") or 0)
+  if not 0 <= seed < 2**64:
+    raise ValueError(f"evaluate: seed {seed} is not a u64")
+  return dict(checkpoint=Path(request["checkpoint"]), stage=request.get("stage"),
+              protocol=protocol, trials=trials, backend=backend, seed=seed,
+              out_dir=Path(request["out_dir"]), batch_size=None if batch is None else int(batch))
+
+
+def seed_key(seed: int) -> jax.Array:
+  """The PRNG key of a u64 seed, both halves kept (as the learner derives its keys)."""
+  return jnp.asarray([seed >> 32, seed & 0xFFFFFFFF], dtype=jnp.uint32)
+
+
+def trial_keys(seed: int, cell_index: int, trials: int) -> np.ndarray:
+  """Keys [trials, 2] of one cell's trials."""
+  return np.asarray(jax.random.split(jax.random.fold_in(seed_key(seed), cell_index), trials))
+
+
+def make_rollout(env, policy: policy_lib.Policy) -> Callable:
+  """(keys [B], ConditionArrays [B]) -> (success [B], recovery_time [B], ended [B]) of the first
+  episode of each env, over exactly env.episode_steps control steps (pure; jit it)."""
+  act_step = policy_lib.episode_step(policy, env)
+
+  def rollout(keys, arrays):
+    batch = keys.shape[0]
+    state = cond_lib.start_arrays(env, keys, arrays)
+    history = policy.initial_history(batch)
+
+    def body(carry, _):
+      state, history, ended, success, recovery = carry
+      state, history = act_step((state, history))
+      first = (state.done > 0) & ~ended
+      success = jnp.where(first, state.episode_metrics["success"], success)
+      recovery = jnp.where(first, state.episode_metrics["recovery_time"], recovery)
+      return (state, history, ended | first, success, recovery), None
+
+    init = (state, history, jnp.zeros((batch,), bool), jnp.zeros((batch,)),
+            jnp.full((batch,), jnp.nan))
+    (_, _, ended, success, recovery), _ = jax.lax.scan(body, init, None,
+                                                       length=env.episode_steps)
+    return success, recovery, ended
+
+  return rollout
+
+
+def _compiled(policy: policy_lib.Policy, stage: dict, backend: str, batch: int):
+  from jax_env.env import FallRecoveryEnv
+
+  checkpoint = policy.directory
+  params = checkpoint / "params.safetensors"
+  stamp = params.stat().st_mtime_ns if params.exists() else None
+  key = (str(checkpoint.resolve()), stamp, json.dumps(stage, sort_keys=True), backend, batch)
+  if key not in _ROLLOUTS:
+    env = FallRecoveryEnv(cond_lib.evaluation_stage(stage), backend=backend)
+    policy_lib.check_features(policy, env)
+    _ROLLOUTS.clear()  # one policy at a time: compiled rollouts hold their constants
+    _ROLLOUTS[key] = (policy, env, jax.jit(make_rollout(env, policy)))
+  return _ROLLOUTS[key]
+
+
+def evaluate(request: dict, callback: Callable[[dict], str] | None = None) -> dict:
+  """Runs the protocol; see docs/contracts.md for the request, progress and result keys."""
+  r = _validate(request)
+  loaded = policy_lib.load(r["checkpoint"])
+  stage = policy_lib.stage_of(loaded, r["stage"])
+  cells = proto_lib.cells(r["protocol"])
+  trials = r["trials"]
+  total = len(cells) * trials
+  batch = min(r["batch_size"] or DEFAULT_BATCH[r["backend"]], total)
+  policy, env, rollout = _compiled(loaded, stage, r["backend"], batch)
+
+  # The flat trial list: (cell index, key), with the conditions as rows of data.
+  cell_of = np.repeat(np.arange(len(cells)), trials)
+  keys = np.concatenate([trial_keys(r["seed"], c, trials) for c in range(len(cells))])
+  rows = cond_lib.condition_arrays(env, [cells[c].condition for c in cell_of])
+  rows = jax.tree_util.tree_map(np.asarray, rows)
+  success = np.zeros(total, np.float32)
+  recovery = np.full(total, np.nan, np.float32)
+
+  for lo in range(0, total, batch):
+    idx = np.minimum(np.arange(lo, lo + batch), total - 1)  # pad with the last trial
+    arrays = jax.tree_util.tree_map(lambda x: jnp.asarray(x[idx]), rows)
+    s, t, ended = jax.device_get(rollout(jnp.asarray(keys[idx]), arrays))
+    if not np.all(ended):
+      raise RuntimeError("evaluate: an episode did not end after episode_steps control steps")
+    n = min(batch, total - lo)
+    success[lo:lo + n], recovery[lo:lo + n] = s[:n], t[:n]
+    done = lo + n
+    if callback is not None:
+      answer = callback({"cells_done": done // trials, "cells_total": len(cells),
+                         "trials_done": done, "trials_total": total,
+                         "cell": cells[cell_of[done - 1]].label})
+      if answer == "interrupt":
+        return {"status": "interrupted", "files": [], "markdown": ""}
+      if answer not in (None, "continue"):
+        raise ValueError(f"evaluate: callback answered {answer!r}; valid: continue, interrupt")
+
+  results = [_cell_result(cell, success[c * trials:(c + 1) * trials],
+                          recovery[c * trials:(c + 1) * trials])
+             for c, cell in enumerate(cells)]
+  doc = _document(r, policy, env, results)
+  markdown = render_markdown(doc)
+  files = _write(r["out_dir"], {
+      "eval.json": json.dumps(doc, indent=2) + "\n",
+      "eval.csv": render_csv(results),
+      "eval.md": markdown,
+  })
+  return {"status": "completed", "files": files, "markdown": markdown}
+
+
+def _cell_result(cell: proto_lib.Cell, success: np.ndarray, recovery: np.ndarray) -> dict:
+  ok = success > 0.5
+  n, k = int(success.shape[0]), int(ok.sum())
+  low, high = stats.wilson_interval(k, n)
+  mean, std = stats.mean_std([float(x) for x in recovery[ok]])
+  return {
+      "experiment": cell.experiment, "scenario": cell.scenario, "setting": cell.setting,
+      "value": cell.value, "trials": n, "successes": k, "success_rate": k / n,
+      "ci95": [low, high], "recovery_time_mean": mean, "recovery_time_std": std,
+      "paper_success_rate": cell.paper_success_rate,
+      "paper_recovery_time": (None if cell.paper_recovery_time is None
+                              else list(cell.paper_recovery_time)),
+      "condition": cell.condition.to_dict(),
+  }
+
+
+def _document(r: dict, policy: policy_lib.Policy, env, results: list[dict]) -> dict:
+  from jax_env import facade
+
+  setup = cond_lib.nominal_setup(env)
+  setup.update(push_start_s=proto_lib.PUSH_START_S, push_duration_s=proto_lib.PUSH_DURATION_S)
+  return {
+      "format_version": FORMAT_VERSION, "protocol": r["protocol"], "backend": r["backend"],
+      "seed": r["seed"], "trials": r["trials"], "checkpoint": str(r["checkpoint"].resolve()),
+      "stage": policy.meta.get("stage"), "env_steps": policy.meta.get("env_steps"),
+      "versions": facade.versions(), "conditions": setup, "cells": results,
+  }
+
+
+def render_csv(results: list[dict]) -> str:
+  out = io.StringIO()
+  w = csv.DictWriter(out, fieldnames=CSV_FIELDS, lineterminator="\n")
+  w.writeheader()
+  for c in results:
+    paper_t = c["paper_recovery_time"] or [None, None]
+    row = {k: c.get(k) for k in CSV_FIELDS}
+    row.update(ci_low=c["ci95"][0], ci_high=c["ci95"][1], paper_recovery_time_mean=paper_t[0],
+               paper_recovery_time_std=paper_t[1])
+    w.writerow({k: "" if v is None else v for k, v in row.items()})
+  return out.getvalue()
+
+
+def _pct(x: float | None) -> str:
+  return "—" if x is None else f"{100 * x:.0f}%"
+
+
+def _entry(c: dict) -> str:
+  low, high = c["ci95"]
+  return (f"{_pct(c['success_rate'])} [{100 * low:.0f}–{100 * high:.0f}] · "
+          f"{_pct(c['paper_success_rate'])}")
+
+
+def _time(mean, std) -> str:
+  return "—" if mean is None else f"{mean:.3f} ± {std:.3f}"
+
+
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+  lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
+  return lines + ["| " + " | ".join(row) + " |" for row in rows]
+
+
+def render_markdown(doc: dict) -> str:
+  """eval.md: one table per experiment laid out like the paper's (rows prone / supine, columns
+  the settings), each entry "ours [95 % Wilson CI] · paper"."""
+  setup = doc["conditions"]
+  lines = [
+      f"# Evaluation: {doc['protocol']} protocol, {doc['backend']} backend", "",
+      f"- checkpoint: `{doc['checkpoint']}` (stage `{doc['stage']}`, {doc['env_steps']} env "
+      "steps)",
+      f"- {doc['trials']} trials per cell, seed {doc['seed']}",
+      f"- standard setup: torso {setup['torso_mass_kg']:g} kg, friction "
+      f"{setup['friction']:g}, no randomization, no delay, flat floor; episodes of "
+      f"{setup['episode_s']:g} s (recovery time counts from the control start, after "
+      f"{setup['settle_s']:g} s of settling for dropped poses)",
+      "- entries: our success rate [95 % Wilson interval] · the paper's (Webots, 10 trials; "
+      "— where the paper reports none)", "",
+  ]
+  by_exp: dict[str, list[dict]] = {}
+  for c in doc["cells"]:
+    by_exp.setdefault(c["experiment"], []).append(c)
+  for exp in proto_lib.EXPERIMENTS:
+    cells = by_exp.get(exp)
+    if not cells:
+      continue
+    lines += [f"## {EXPERIMENT_TITLES[exp]}", ""]
+    if exp == "standard":
+      header = [""] + [c["scenario"].capitalize() for c in cells]
+      rows = [["Success rate"] + [_entry(c) for c in cells],
+              ["Recovery time (s)"] + [
+                  f"{_time(c['recovery_time_mean'], c['recovery_time_std'])} · "
+                  f"{_time(*(c['paper_recovery_time'] or [None, None]))}" for c in cells]]
+      lines += _table(header, rows)
+      lines += ["", "The paper's recovery times are its real-robot measurements (20 trials)."]
+    else:
+      settings = list(dict.fromkeys(c["setting"] for c in cells))
+      row_of = lambda c: "initial state" if exp == "random_initial" else c["scenario"]
+      row_names = list(dict.fromkeys(row_of(c) for c in cells))
+      index = {(row_of(c), c["setting"]): c for c in cells}
+      header = [""] + settings
+      rows = [[name.capitalize()] + [_entry(index[(name, s)]) if (name, s) in index else ""
+                                     for s in settings] for name in row_names]
+      lines += _table(header, rows)
+    lines.append("")
+  return "\n".join(lines)
+
+
+def _write(out_dir: Path, contents: dict[str, str]) -> list[str]:
+  """Writes each file atomically (a temporary sibling, fsynced, renamed into place)."""
+  out_dir.mkdir(parents=True, exist_ok=True)
+  paths = []
+  for name, text in contents.items():
+    path = out_dir / name
+    tmp = out_dir / f".{name}.tmp"
+    with open(tmp, "w", encoding="utf-8") as f:
+      f.write(text)
+      f.flush()
+      os.fsync(f.fileno())
+    os.replace(tmp, path)
+    paths.append(str(path.resolve()))
+  return paths
