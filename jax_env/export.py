@@ -30,13 +30,13 @@ import dataclasses
 import hashlib
 import json
 import math
-import os
-import uuid
 from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from jax_env.files import write_atomic
 
 OPSET = 17
 # The IR version that goes with opset 17; onnx's newest would be refused by older runtimes.
@@ -463,25 +463,6 @@ def compare(got: np.ndarray, ref: np.ndarray, names) -> Parity:
 
 # ---------------------------------------------------------------------------------------------
 # Writing.
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-  """Temporary sibling, fsync, rename over `path`, fsync the directory."""
-  tmp = path.parent / f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-  try:
-    with open(tmp, "wb") as f:
-      f.write(data)
-      f.flush()
-      os.fsync(f.fileno())
-    os.replace(tmp, path)
-  except BaseException:
-    tmp.unlink(missing_ok=True)
-    raise
-  fd = os.open(path.parent, os.O_RDONLY)
-  try:
-    os.fsync(fd)
-  finally:
-    os.close(fd)
 
 
 def export_onnx(request: dict) -> dict:

@@ -237,7 +237,6 @@ class Randomizer:
     self.max_delay_substeps = int(math.floor(stage.delay.max_s / self.timestep + 1e-9))
     weights = np.array([stage.terrain.weights[t] for t in TERRAINS], np.float32)
     self.terrain_weights = weights
-    self.terrain_possible = weights > 0
     self.slope_max = math.radians(stage.terrain.slope_max_deg)
 
   def draw(self, key: jax.Array, batch: int, terrain: jax.Array | None = None) -> EpisodeDraw:

@@ -30,6 +30,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from jax_env.files import write_atomic
+
 _REQUEST_KEYS = ("checkpoint", "stage", "scenario", "terrain", "push_force", "push_direction",
                  "seed", "backend", "duration_s", "video", "filmstrip")
 _BACKENDS = ("mjx", "native")
@@ -405,33 +407,14 @@ def _frames(model_path: str, episode_path: str, indices: np.ndarray | None) -> t
   return np.stack(frames), float(ep["ctrl_dt"])
 
 
-def _replace_atomic(tmp: str, final: str) -> None:
-  with open(tmp, "rb") as f:
-    os.fsync(f.fileno())
-  os.replace(tmp, final)
-  parent = os.open(os.path.dirname(os.path.abspath(final)) or ".", os.O_RDONLY)
-  try:
-    os.fsync(parent)
-  finally:
-    os.close(parent)
-
-
-def _temp_beside(final: str, suffix: str) -> str:
-  folder = os.path.dirname(os.path.abspath(final))
-  fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(final)}.", suffix=suffix, dir=folder)
-  os.close(fd)
-  return tmp
-
-
 def write_video(frames: np.ndarray, fps: float, path: str) -> str:
   """H.264 MP4 (libx264 where the PyAV wheel has it, else MPEG-4 part 2), written atomically.
   Returns the codec used."""
   import av
 
   codec = "libx264" if "libx264" in av.codecs_available else "mpeg4"
-  tmp = _temp_beside(path, ".mp4")
-  try:
-    with av.open(tmp, mode="w", format="mp4") as container:
+  def encode(tmp):
+    with av.open(str(tmp), mode="w", format="mp4") as container:
       stream = container.add_stream(codec, rate=fractions.Fraction(fps).limit_denominator(1000))
       stream.height, stream.width = frames.shape[1:3]
       stream.pix_fmt = "yuv420p"
@@ -444,11 +427,8 @@ def write_video(frames: np.ndarray, fps: float, path: str) -> str:
           container.mux(packet)
       for packet in stream.encode():
         container.mux(packet)
-    _replace_atomic(tmp, path)
-  except BaseException:
-    if os.path.exists(tmp):
-      os.remove(tmp)
-    raise
+
+  write_atomic(path, encode)
   return codec
 
 
@@ -476,14 +456,7 @@ def write_filmstrip(frames: np.ndarray, times: Sequence[float], path: str) -> No
     ax.imshow(img, interpolation="nearest")
     ax.set_axis_off()
     ax.set_title(f"t = {t:.2f} s", fontsize=9, pad=3)
-  tmp = _temp_beside(path, ".png")
-  try:
-    fig.savefig(tmp, format="png", dpi=w / panel)
-    _replace_atomic(tmp, path)
-  except BaseException:
-    if os.path.exists(tmp):
-      os.remove(tmp)
-    raise
+  write_atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=w / panel))
 
 
 def _main(argv: list[str]) -> int:

@@ -23,13 +23,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
-import uuid
 from datetime import datetime
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
+
+from jax_env.files import write_atomic
 
 DPI = 150
 CURVES_SIZE = (10.0, 9.0)  # inches: three stacked panels
@@ -271,23 +271,10 @@ def _smooth(y: np.ndarray) -> np.ndarray:
   return np.convolve(padded, kernel, mode="valid")
 
 
-def _write_atomic(path: Path, write: Callable[[Path], None]) -> None:
-  """`write(tmp)` to a temporary sibling of `path`, fsync it, then rename it into place."""
-  tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
-  try:
-    write(tmp)
-    with open(tmp, "rb") as f:
-      os.fsync(f.fileno())
-    os.replace(tmp, path)
-  except BaseException:
-    tmp.unlink(missing_ok=True)
-    raise
-
-
 def _save(fig, path: Path) -> None:
   from matplotlib.backends.backend_agg import FigureCanvasAgg
   FigureCanvasAgg(fig)
-  _write_atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=DPI))
+  write_atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=DPI))
 
 
 def _figure(size: tuple[float, float], rows: int, cols: int, sharex: bool = True):
@@ -787,7 +774,7 @@ def report(request: dict) -> dict:
 
   markdown = out / "report.md"
   text = "\n".join(md).rstrip() + "\n"
-  _write_atomic(markdown, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+  write_atomic(markdown, text)
   return {"markdown": str(markdown), "plots": [str(p) for p in plots]}
 
 

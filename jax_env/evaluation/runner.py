@@ -19,7 +19,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
 from pathlib import Path
 from typing import Callable
 
@@ -31,6 +30,7 @@ from jax_env.evaluation import conditions as cond_lib
 from jax_env.evaluation import policy as policy_lib
 from jax_env.evaluation import protocols as proto_lib
 from jax_env.evaluation import stats
+from jax_env.files import write_atomic
 
 FORMAT_VERSION = 1
 FILES = ("eval.json", "eval.csv", "eval.md")
@@ -302,11 +302,6 @@ def _write(out_dir: Path, contents: dict[str, str]) -> list[str]:
   paths = []
   for name, text in contents.items():
     path = out_dir / name
-    tmp = out_dir / f".{name}.tmp"
-    with open(tmp, "w", encoding="utf-8") as f:
-      f.write(text)
-      f.flush()
-      os.fsync(f.fileno())
-    os.replace(tmp, path)
+    write_atomic(path, text)
     paths.append(str(path.resolve()))
   return paths

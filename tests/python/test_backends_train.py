@@ -10,7 +10,6 @@ the per-term rewards far outside this band.
 import copy
 
 import numpy as np
-import pytest
 
 from jax_env import config as config_lib
 from jax_env import facade
