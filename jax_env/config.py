@@ -32,12 +32,12 @@ LATERAL_JOINTS: tuple[str, ...] = tuple(robot.LATERAL_JOINTS)
 KSI_SCENARIOS: tuple[str, ...] = ("ksi_prone_1", "ksi_prone_2", "ksi_prone_3", "ksi_supine_1",
                                   "ksi_supine_2", "ksi_supine_3")
 SCENARIOS: tuple[str, ...] = KSI_SCENARIOS + ("supine", "prone", "lateral", "sitting",
-                                              "crossed_legs", "random_drop")
+                                              "crossed_legs", "random_drop", "stand", "squat")
 TERRAINS: tuple[str, ...] = ("flat", "slope", "obstacle")
 REWARD_TERMS: tuple[str, ...] = ("survival", "base_height", "standing", "orientation",
                                  "dof_pos_ref", "torques", "dof_vel", "dof_acc", "root_acc",
                                  "action_rate", "dof_pos_limits", "torque_fatigue", "power",
-                                 "hip_roll")
+                                 "hip_roll", "trunk_height", "waist_height", "upright")
 DR_PARAMS: tuple[str, ...] = ("dof_position", "base_xy_position", "base_linear_velocity",
                               "joint_stiffness", "joint_damping", "terrain_friction",
                               "terrain_compliance", "terrain_restitution", "torso_com",
@@ -48,6 +48,9 @@ ACTION_MAPPINGS: tuple[str, ...] = ("current", "default")
 LR_SCHEDULES: tuple[str, ...] = ("fixed", "adaptive_kl")
 ACTIVATIONS: tuple[str, ...] = ("elu", "swish", "tanh", "relu")
 ON_MISS: tuple[str, ...] = ("stop", "continue")
+# What a penalty schedule's points are keyed on: the stage's env steps so far, or the
+# training stand rate (the fraction of episodes that ended standing, last iteration).
+SCHEDULE_KEYS: tuple[str, ...] = ("env_steps", "stand_rate")
 
 _SUM_TOLERANCE = 1e-6
 
@@ -121,6 +124,62 @@ class RewardParams:
   base_height_target: float
   base_height_sigma: float
   hip_roll_ref: float
+  # Waist body height target of `waist_height` (mjlab's T1 get-up: 0.55 m, against sitting).
+  waist_height_target: float = 0.55
+  # `dof_pos_ref` applies only within this distance of the target height (0: everywhere);
+  # the paper's code pays it only near standing (|h - 0.68| < 0.1).
+  dof_pos_ref_band: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class PenaltySchedule:
+  """Piecewise-linear scale of every penalty (negative weight) over `by` (SCHEDULE_KEYS).
+
+  points: ((x0, s0), (x1, s1), ...) with x increasing; constant beyond the ends. With
+  by = "stand_rate" the scale never decreases within a stage (a ratchet): a dip in the stand
+  rate does not take the smoothing pressure away again.
+  """
+
+  by: str
+  points: tuple[tuple[float, float], ...]
+
+  def scale(self, x: float) -> float:
+    xs = [p[0] for p in self.points]
+    ys = [p[1] for p in self.points]
+    if x <= xs[0]:
+      return ys[0]
+    for (x0, y0), (x1, y1) in zip(self.points, self.points[1:]):
+      if x <= x1:
+        return y0 + (y1 - y0) * (x - x0) / (x1 - x0) if x1 > x0 else y1
+    return ys[-1]
+
+
+@dataclasses.dataclass(frozen=True)
+class RewardShaping:
+  """How the weighted terms become one reward (defaults: a plain weighted sum)."""
+
+  scale_by_ctrl_dt: bool = False  # weights × control period (the paper's code, legged_gym)
+  clip_at_zero: bool = False  # total clipped at 0 from below (`only_positive_rewards`)
+  penalty_schedule: PenaltySchedule | None = None  # None: penalties at full weight always
+
+
+@dataclasses.dataclass(frozen=True)
+class TerminationConfig:
+  """True terminations (no value bootstrap), apart from the time limit; 0 disables each."""
+
+  low_height: float = 0.0  # Trunk below this (m) ...
+  low_height_s: float = 2.0  # ... for longer than this (s) ends the episode
+  upside_down: float = 0.0  # projected gravity z above this (head down) ends it
+  side_roll: float = 0.0  # |projected gravity y| above this (lying on a side) ends it
+
+
+@dataclasses.dataclass(frozen=True)
+class MonitorConfig:
+  """The deterministic stand-rate monitor during training (no action noise)."""
+
+  every: int = 0  # iterations between monitor rollouts; 0: off
+  episodes: int = 4  # episodes per start scenario
+  scenarios: tuple[str, ...] = ()  # empty: every scenario of the mixture, plus `stand`
 
 
 @dataclasses.dataclass(frozen=True)
@@ -185,6 +244,7 @@ class PPOConfig:
   activation: str
   initial_action_std: float
   checkpoint_every: int
+  max_action_std: float | None = None  # the policy's std is kept at or below this
 
 
 @dataclasses.dataclass(frozen=True)
@@ -234,6 +294,16 @@ class StageConfig:
   rma: RMAConfig
   mirror: MirrorConfig
   advance: AdvanceConfig
+  reward_shaping: RewardShaping = RewardShaping()
+  termination: TerminationConfig = TerminationConfig()
+  monitor: MonitorConfig = MonitorConfig()
+
+  @property
+  def monitor_scenarios(self) -> tuple[str, ...]:
+    """The start scenarios the monitor measures, in SCENARIOS order."""
+    if self.monitor.scenarios:
+      return tuple(s for s in SCENARIOS if s in self.monitor.scenarios)
+    return tuple(s for s in SCENARIOS if self.scenarios[s] > 0 or s == "stand")
 
   @classmethod
   def from_dict(cls, d: Mapping[str, Any]) -> "StageConfig":
@@ -309,9 +379,9 @@ class _Parser:
       return None
     return int(v) if integer else float(v)
 
-  def boolean(self, d, key, path):
+  def boolean(self, d, key, path, default=None):
     if d is None or key not in d:
-      return None
+      return default
     v = d[key]
     if not isinstance(v, bool):
       self.err(list(path) + [key], f"expected true or false, got {v!r}")
@@ -421,8 +491,9 @@ class _Parser:
     sections = ("sim", "action", "constraints", "scenarios", "scenario_params", "terrain",
                 "rewards", "reward_params", "success", "domain_randomization", "delay", "push",
                 "ppo", "rma", "mirror", "advance")
+    optional = ("reward_shaping", "termination", "monitor")
     if self.table(d, [], ("name", "init_from", "controlled_joints", "observed_joints")
-                  + sections) is None:
+                  + sections, optional) is None:
       return None
     name = self.string(d, "name", [])
     init_from = self.string(d, "init_from", [])
@@ -452,6 +523,9 @@ class _Parser:
         rma=self.rma(d.get("rma")),
         mirror=self.mirror(d.get("mirror")),
         advance=self.advance(d.get("advance")),
+        reward_shaping=self.reward_shaping(d.get("reward_shaping", {})),
+        termination=self.termination(d.get("termination", {})),
+        monitor=self.monitor(d.get("monitor", {})),
     )
     if self.errors or any(v is None for v in out.values()):
       return None
@@ -552,11 +626,103 @@ class _Parser:
   def reward_params(self, d):
     p = ["reward_params"]
     d = self._section(d, "reward_params",
-                      ("base_height_target", "base_height_sigma", "hip_roll_ref"))
+                      ("base_height_target", "base_height_sigma", "hip_roll_ref"),
+                      ("waist_height_target", "dof_pos_ref_band"))
+    defaults = RewardParams(0.0, 0.0, 0.0)
     return self._all(RewardParams, dict(
         base_height_target=self.number(d, "base_height_target", p, minimum=0.0, exclusive=True),
         base_height_sigma=self.number(d, "base_height_sigma", p, minimum=0.0, exclusive=True),
-        hip_roll_ref=self.number(d, "hip_roll_ref", p)))
+        hip_roll_ref=self.number(d, "hip_roll_ref", p),
+        waist_height_target=self.number(d, "waist_height_target", p, minimum=0.0,
+                                        exclusive=True, default=defaults.waist_height_target),
+        dof_pos_ref_band=self.number(d, "dof_pos_ref_band", p, minimum=0.0,
+                                     default=defaults.dof_pos_ref_band)))
+
+  def reward_shaping(self, d):
+    p = ["reward_shaping"]
+    d = self._section(d, "reward_shaping", (),
+                      ("scale_by_ctrl_dt", "clip_at_zero", "penalty_schedule"))
+    if d is None:
+      return None
+    default = RewardShaping()
+    out = dict(
+        scale_by_ctrl_dt=self.boolean(d, "scale_by_ctrl_dt", p, default.scale_by_ctrl_dt),
+        clip_at_zero=self.boolean(d, "clip_at_zero", p, default.clip_at_zero))
+    schedule = None
+    if "penalty_schedule" in d:
+      schedule = self.penalty_schedule(d["penalty_schedule"], p + ["penalty_schedule"])
+      if schedule is None:
+        return None
+    if any(v is None for v in out.values()):
+      return None
+    return RewardShaping(penalty_schedule=schedule, **out)
+
+  def penalty_schedule(self, d, p):
+    d = self.table(d, p, ("by", "points"))
+    if d is None or "by" not in d or "points" not in d:
+      return None
+    by = self.choice(d, "by", p, SCHEDULE_KEYS)
+    v = d["points"]
+    if not isinstance(v, (list, tuple)) or not v:
+      self.err(p + ["points"], f"expected a non-empty list of [x, scale] pairs, got {v!r}")
+      return None
+    points = []
+    for i, pt in enumerate(v):
+      pair = self.pair(pt, p + ["points", i], ordered=False)
+      if pair is None:
+        return None
+      if pair[1] < 0:
+        self.err(p + ["points", i], f"scale {pair[1]!r} must be >= 0")
+        return None
+      if points and pair[0] < points[-1][0]:
+        self.err(p + ["points", i], f"x {pair[0]!r} is below the previous point's "
+                 f"{points[-1][0]!r}; points must be in increasing x")
+        return None
+      points.append(pair)
+    if by is None:
+      return None
+    if by == "stand_rate" and any(not 0.0 <= x <= 1.0 for x, _ in points):
+      self.err(p + ["points"], "stand-rate points must have x in [0, 1]")
+      return None
+    return PenaltySchedule(by=by, points=tuple(points))
+
+  def termination(self, d):
+    p = ["termination"]
+    keys = ("low_height", "low_height_s", "upside_down", "side_roll")
+    d = self._section(d, "termination", (), keys)
+    default = TerminationConfig()
+    values = {k: self.number(d, k, p, minimum=0.0, default=getattr(default, k)) for k in keys}
+    if values["low_height_s"] is not None and values["low_height_s"] <= 0:
+      self.err(p + ["low_height_s"], f"{values['low_height_s']!r} must be > 0")
+      values["low_height_s"] = None
+    for k in ("upside_down", "side_roll"):
+      if values[k] is not None and values[k] > 1.0:
+        self.err(p + [k], f"{values[k]!r} must be <= 1 (a component of the unit gravity "
+                 "vector; 0 disables)")
+        values[k] = None
+    return self._all(TerminationConfig, values)
+
+  def monitor(self, d):
+    p = ["monitor"]
+    d = self._section(d, "monitor", (), ("every", "episodes", "scenarios"))
+    default = MonitorConfig()
+    every = self.number(d, "every", p, minimum=0, integer=True, default=default.every)
+    episodes = self.number(d, "episodes", p, minimum=0, exclusive=True, integer=True,
+                           default=default.episodes)
+    scenarios = ()
+    if d is not None and "scenarios" in d:
+      v = d["scenarios"]
+      if not isinstance(v, (list, tuple)) or not v:
+        self.err(p + ["scenarios"], f"expected a non-empty list of scenario names, got {v!r}")
+        return None
+      for i, name in enumerate(v):
+        if name not in SCENARIOS:
+          self.err(p + ["scenarios", i], f"unknown scenario {name!r}; {_valid(SCENARIOS)}")
+          return None
+      scenarios = tuple(v)
+    if every is None or episodes is None:
+      return None
+    return MonitorConfig(every=every, episodes=episodes, scenarios=scenarios)
 
   def success(self, d):
     p = ["success"]
@@ -629,7 +795,8 @@ class _Parser:
     nonneg = ("entropy_cost", "value_loss_coef", "max_grad_norm")
     unit = ("discount", "gae_lambda")
     d = self._section(d, "ppo", ints + pos + nonneg + unit + (
-        "lr_schedule", "normalize_observations", "policy_hidden", "value_hidden", "activation"))
+        "lr_schedule", "normalize_observations", "policy_hidden", "value_hidden", "activation"),
+        ("max_action_std",))
     v = {k: self.number(d, k, p, minimum=0, exclusive=True, integer=True) for k in ints}
     v.update({k: self.number(d, k, p, minimum=0.0, exclusive=True) for k in pos})
     v.update({k: self.number(d, k, p, minimum=0.0) for k in nonneg})
@@ -639,7 +806,15 @@ class _Parser:
              policy_hidden=self.int_list(d, "policy_hidden", p),
              value_hidden=self.int_list(d, "value_hidden", p),
              activation=self.choice(d, "activation", p, ACTIVATIONS))
-    return self._all(PPOConfig, v)
+    ppo = self._all(PPOConfig, v)
+    if ppo is None or d is None or "max_action_std" not in d:
+      return ppo
+    bound = self.number(d, "max_action_std", p, minimum=0.0, exclusive=True)
+    if bound is not None and bound < ppo.initial_action_std:
+      self.err(p + ["max_action_std"], f"max_action_std {bound!r} is below "
+               f"initial_action_std {ppo.initial_action_std!r}")
+      bound = None
+    return None if bound is None else dataclasses.replace(ppo, max_action_std=bound)
 
   def rma(self, d):
     p = ["rma"]

@@ -16,8 +16,15 @@ One control step:
      of training, or the evaluation protocols' push fixed in the Trunk frame;
   4. physics runs ctrl_dt / timestep substeps;
   5. observations, privileged features, rewards and the success detector read the new view;
-  6. episodes that reached the time limit or blew up numerically (NaN) are reset with a fresh
-     draw (scenario, randomization, delay, terrain) in the same step.
+  6. episodes that reached their time limit, met a termination condition of the stage (Trunk
+     low for too long, upside down, rolled on a side: true terminations, no value bootstrap)
+     or blew up numerically (NaN) are reset with a fresh draw (scenario, randomization, delay,
+     terrain) in the same step.
+
+Penalties are scaled by `EnvState.penalty_scale`, which the learner sets from the stage's
+penalty schedule (a schedule is data in the curriculum; the step only multiplies). Training
+staggers the episode clocks once at the start (`stagger`), so that the batch does not hold one
+phase of every episode at a time.
 """
 
 from __future__ import annotations
@@ -82,8 +89,14 @@ class EnvState:
   truncation: jax.Array  # [B] float 0/1: the end was the time limit
   control_active: jax.Array  # [B] float 0/1: actions take effect in the next step
   metrics: dict  # "reward/<term>", "standing": [B]
-  episode_metrics: dict  # "success", "recovery_time", "return", "scenario": valid where done
+  episode_metrics: dict  # "success", "recovery_time", "return", "scenario", "max_height",
+  #                        "time_standing": valid where done
   step_count: jax.Array  # [B] int32 control steps since the episode start
+  episode_limit: jax.Array  # [B] int32 control steps after which the episode times out
+  low_steps: jax.Array  # [B] int32 consecutive controlled steps with the Trunk below low_height
+  max_height: jax.Array  # [B] highest Trunk height of the episode so far
+  stand_steps: jax.Array  # [B] int32 controlled steps spent standing this episode
+  penalty_scale: jax.Array  # [B] the penalty schedule's current scale (set by the learner)
   control_start: jax.Array  # [B] int32 first controlled step (settling before it)
   scenario: jax.Array  # [B] int32 index into config.SCENARIOS
   targets: jax.Array  # [B, K, nu] issued PD targets, newest first (for the delay)
@@ -109,6 +122,7 @@ class FallRecoveryEnv:
     self.mj_model = constrained_model(stage, base_model)
     # Resets never read derived physics quantities (see `_start`), so MJX may skip the forward
     # pass at init: that keeps a second copy of the MJX pipeline out of the step's compile.
+    self.backend_name = backend
     self.backend = make_backend(backend, self.mj_model,
                                 **({"forward_on_init": False} if backend == "mjx" else {}))
     m = self.mj_model
@@ -134,6 +148,9 @@ class FallRecoveryEnv:
     self.observed_mask[self.obs_idx] = 1.0
     self.hip_roll_idx = np.array([j["Left_Hip_Roll"], j["Right_Hip_Roll"]], np.int32)
     self.trunk = int(m.body("Trunk").id)
+    self.waist = int(m.body("Waist").id)
+    t = stage.termination
+    self.low_height_steps = max(int(math.ceil(t.low_height_s / self.ctrl_dt - 1e-9)), 1)
     stand_qpos, _ = robot.keyframe(m, "stand")
     self.q_stand = np.asarray(stand_qpos[7:], np.float32)
     self.stand_height = float(stand_qpos[2])
@@ -236,6 +253,9 @@ class FallRecoveryEnv:
         truncation=zeros, control_active=(control_start == 0).astype(jnp.float32),
         metrics=self._zero_metrics(batch), episode_metrics=self._zero_episode_metrics(batch),
         step_count=jnp.zeros((batch,), jnp.int32), control_start=control_start,
+        episode_limit=jnp.full((batch,), self.episode_steps, jnp.int32),
+        low_steps=jnp.zeros((batch,), jnp.int32), max_height=qpos[:, 2],
+        stand_steps=jnp.zeros((batch,), jnp.int32), penalty_scale=jnp.ones((batch,)),
         scenario=scenario.astype(jnp.int32),
         targets=jnp.broadcast_to(hold[:, None], (batch, self.target_history, hold.shape[-1])),
         hold_target=hold, last_action=zeros_a, prev_action=zeros_a, prev_qvel=qvel, push=push,
@@ -263,7 +283,21 @@ class FallRecoveryEnv:
   def _zero_episode_metrics(self, batch):
     z = jnp.zeros((batch,))
     return {"success": z, "recovery_time": jnp.full((batch,), jnp.nan, jnp.float32), "return": z,
-            "scenario": z}
+            "scenario": z, "max_height": z, "time_standing": z}
+
+  def stagger(self, state: EnvState, key: jax.Array) -> EnvState:
+    """The same episodes with their first time limits drawn uniformly in (control start,
+    episode length]: a training batch then holds every phase of an episode at once rather
+    than all episodes in lockstep (legged_gym's random initial episode lengths). Later
+    episodes run the full length."""
+    low = state.control_start + 1
+    limit = jax.random.randint(key, low.shape, low, self.episode_steps + 1)
+    return state.replace(episode_limit=limit.astype(jnp.int32))
+
+  def with_penalty_scale(self, state: EnvState, scale) -> EnvState:
+    """The state with the penalty schedule's scale for the coming steps."""
+    return state.replace(penalty_scale=jnp.broadcast_to(
+        jnp.asarray(scale, jnp.float32), state.penalty_scale.shape))
 
   # -------------------------------------------------------------------------------------------
   # Step.
@@ -307,7 +341,8 @@ class FallRecoveryEnv:
     x = self._quantities(view, state, applied)
     success = rewards_lib.success_update(state.success, x.standing, state.step_count,
                                          state.control_start, self.hold_steps, self.ctrl_dt)
-    reward, terms = rewards_lib.compute(x, s.rewards, s.reward_params)
+    reward, terms = rewards_lib.compute(x, s.rewards, s.reward_params, s.reward_shaping,
+                                        self.ctrl_dt, state.penalty_scale)
     gate = active.astype(jnp.float32)  # no reward while settling: the policy is not acting
     finite = (jnp.all(jnp.isfinite(view.qpos), -1) & jnp.all(jnp.isfinite(view.qvel), -1)
               & (jnp.max(jnp.abs(view.qvel), -1) < BLOWUP_SPEED))
@@ -317,23 +352,30 @@ class FallRecoveryEnv:
     metrics["standing"] = (x.standing & active & finite).astype(jnp.float32)
 
     step_count = state.step_count + 1
-    time_up = step_count >= self.episode_steps
-    done = time_up | ~finite
+    time_up = step_count >= state.episode_limit
+    low_steps, terminated = self._terminations(state, x, active)
+    done = time_up | ~finite | terminated
     episode_return = state.episode_return + reward
+    max_height = jnp.maximum(state.max_height, jnp.nan_to_num(view.qpos[:, 2]))
+    stand_steps = state.stand_steps + metrics["standing"].astype(jnp.int32)
     episode_metrics = {
         "success": success.success.astype(jnp.float32),
         "recovery_time": jnp.where(success.success, success.recovery_time, jnp.nan),
         "return": episode_return,
         "scenario": state.scenario.astype(jnp.float32),
+        "max_height": max_height,
+        "time_standing": stand_steps.astype(jnp.float32) * self.ctrl_dt,
     }
     obs = self._obs(view, state.draw, applied)
     priv = self._privileged(view, state.draw, push, pushing, scheduled_force)
     pushing = pushing | scheduled
     nxt = state.replace(
         physics=physics, obs=obs, privileged=priv, reward=reward,
-        done=done.astype(jnp.float32), truncation=(time_up & finite).astype(jnp.float32),
+        done=done.astype(jnp.float32),
+        truncation=(time_up & finite & ~terminated).astype(jnp.float32),
         control_active=(step_count >= state.control_start).astype(jnp.float32),
         metrics=metrics, episode_metrics=episode_metrics, step_count=step_count,
+        low_steps=low_steps, max_height=max_height, stand_steps=stand_steps,
         targets=history[:, :self.target_history], last_action=applied,
         prev_action=state.last_action, prev_qvel=view.qvel, push=push, push_active=pushing,
         success=success, episode_return=episode_return, rng=rng)
@@ -342,13 +384,26 @@ class FallRecoveryEnv:
     def auto_reset(nxt):
       fresh = self._reset(k_reset)
       keep = dict(reward=nxt.reward, done=nxt.done, truncation=nxt.truncation,
-                  metrics=nxt.metrics, episode_metrics=nxt.episode_metrics)
+                  metrics=nxt.metrics, episode_metrics=nxt.episode_metrics,
+                  penalty_scale=nxt.penalty_scale)
       merged = jax.tree_util.tree_map(
           lambda new, old: jnp.where(done.reshape((-1,) + (1,) * (old.ndim - 1)), new, old),
           fresh, nxt)
       return merged.replace(**keep)
 
     return jax.lax.cond(jnp.any(done), auto_reset, lambda n: n, nxt)
+
+  def _terminations(self, state: EnvState, x: rewards_lib.Quantities, active):
+    """(low-height streak [B], terminated [B] bool) after a step; only while control is on."""
+    t = self.stage.termination
+    low = (x.base_height < t.low_height) & active if t.low_height > 0 else jnp.zeros_like(active)
+    low_steps = jnp.where(low, state.low_steps + 1, 0)
+    terminated = low_steps > self.low_height_steps
+    if t.upside_down > 0:
+      terminated |= active & (x.gravity[:, 2] > t.upside_down)
+    if t.side_roll > 0:
+      terminated |= active & (jnp.abs(x.gravity[:, 1]) > t.side_roll)
+    return low_steps, terminated
 
   # -------------------------------------------------------------------------------------------
   # Features.
@@ -385,7 +440,8 @@ class FallRecoveryEnv:
     standing = rewards_lib.is_standing(view.qpos[:, 2], gravity, q, self.q_stand,
                                        self.stand_height, self.observed_mask, self.stage.success)
     return rewards_lib.Quantities(
-        base_height=view.qpos[:, 2], gravity=gravity, q=q, q_ref=jnp.asarray(self.q_stand),
+        base_height=view.qpos[:, 2], waist_height=view.xpos[:, self.waist, 2], gravity=gravity,
+        q=q, q_ref=jnp.asarray(self.q_stand),
         qd=qd, qdd=(qd - state.prev_qvel[:, 6:]) / self.ctrl_dt,
         root_acc=(view.qvel[:, 0:3] - state.prev_qvel[:, 0:3]) / self.ctrl_dt,
         torque=view.actuator_force,

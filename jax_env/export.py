@@ -118,10 +118,12 @@ class ActorSpec:
 
 def actor_spec(checkpoint_dir: Path) -> ActorSpec:
   from jax_env import robot
+  from jax_env.evaluation import policy as policy_lib
   from jax_env.learner import checkpoint as ckpt_lib
   from jax_env.learner import networks as nets_lib
 
   ck = ckpt_lib.load(checkpoint_dir)
+  policy_lib.check_adaptation_trained(ck.meta, checkpoint_dir)
   config = ck.network_config()
   meta = ck.meta
   action = meta["action"]
@@ -313,8 +315,8 @@ def _version(dist: str) -> str | None:
     return None
 
 
-def _ctrl_dt(spec: ActorSpec, stage: dict | None, where: Path) -> float | None:
-  """ctrl_dt of the stage table (the request's, else checkpoint.json's), None if neither."""
+def _stage_table(spec: ActorSpec, stage: dict | None, where: Path) -> dict | None:
+  """The stage table the actor acts in (the request's, else checkpoint.json's), or None."""
   from jax_env import config as config_lib
   from jax_env.learner import checkpoint as ckpt_lib
 
@@ -326,14 +328,15 @@ def _ctrl_dt(spec: ActorSpec, stage: dict | None, where: Path) -> float | None:
                        "acts in")
   else:
     stage = spec.meta.get(ckpt_lib.STAGE_CONFIG_KEY)
-  if not isinstance(stage, dict):
-    return None
-  ctrl_dt = stage.get("sim", {}).get("ctrl_dt")
-  return None if ctrl_dt is None else float(ctrl_dt)
+  return stage if isinstance(stage, dict) else None
 
 
-def metadata_props(spec: ActorSpec, checkpoint_dir: Path, ctrl_dt: float | None) -> dict:
-  """onnx metadata_props: every value a string, lists and numbers as JSON."""
+def metadata_props(spec: ActorSpec, checkpoint_dir: Path, stage: dict | None) -> dict:
+  """onnx metadata_props: every value a string, lists and numbers as JSON. With the stage table
+  at hand they carry its control period, physics timestep and success tolerances, which a
+  deployment or a plain-MuJoCo check (evaluation/plain_mujoco.py) needs besides the network."""
+  sim = (stage or {}).get("sim", {})
+  ctrl_dt = sim.get("ctrl_dt")
   params = checkpoint_dir / "params.safetensors"
   digest = hashlib.sha256(params.read_bytes()).hexdigest()
   base = ("joint_pos/<J> (the obs value, relative to the stand keyframe) + q_stand[J]"
@@ -378,6 +381,10 @@ def metadata_props(spec: ActorSpec, checkpoint_dir: Path, ctrl_dt: float | None)
   }
   if ctrl_dt is None:  # no stage table at hand: say so rather than guess
     del props["ctrl_dt"]
+  if sim.get("timestep") is not None:
+    props["timestep"] = sim["timestep"]
+  if isinstance((stage or {}).get("success"), dict):
+    props["success"] = stage["success"]
   return {k: v if isinstance(v, str) else json.dumps(v) for k, v in props.items()}
 
 
@@ -476,7 +483,7 @@ def export_onnx(request: dict) -> dict:
   req = ExportRequest.from_dict(request)
   checkpoint_dir = req.checkpoint.resolve()
   spec = actor_spec(checkpoint_dir)
-  props = metadata_props(spec, checkpoint_dir, _ctrl_dt(spec, req.stage, checkpoint_dir))
+  props = metadata_props(spec, checkpoint_dir, _stage_table(spec, req.stage, checkpoint_dir))
   model = build_model(spec, props)
   data = model.SerializeToString()
 

@@ -160,9 +160,11 @@ _ACTORS: dict = {}
 
 
 def _actor(checkpoint_dir: str):
-  """(network config, jitted deployable actor) of a checkpoint, cached by its files' mtimes."""
+  """(network config, jitted deployable actor) of a checkpoint, cached by its files' mtimes;
+  an RMA checkpoint whose adaptation module was never trained is refused."""
   import jax
 
+  from jax_env.evaluation import policy as policy_lib
   from jax_env.learner import checkpoint as ckpt_lib
   from jax_env.learner import networks as nets_lib
 
@@ -173,6 +175,7 @@ def _actor(checkpoint_dir: str):
   if cached is not None and cached[0] == stamp:
     return cached[1]
   ck = ckpt_lib.load(d)
+  policy_lib.check_adaptation_trained(ck.meta, d)
   nets = nets_lib.Networks(ck.network_config())
   params, normalizer = ckpt_lib.restore_params(nets, ck.tensors)
   fn = jax.jit(lambda obs, history: nets_lib.deployable_mean(nets, params, normalizer, obs,

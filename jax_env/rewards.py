@@ -14,6 +14,13 @@ Choices where the paper's table is ambiguous:
   * DoF position limits count joints outside the robot's real range (not the stage's widened
     range), so stage 1's extended range is allowed but discouraged.
   * Power is Σ|τ_i·q̇_i| (mechanical power in W, the L1 norm of τ⊙q̇).
+  * `trunk_height` and `waist_height` are mjlab's T1 get-up heights, (e^min(h, h*) − 1) /
+    (e^h* − 1): a gradient all the way from the floor (where the paper's Gaussian
+    `base_height` is flat), and the Waist term pays for lifting the hips, against the
+    sitting-on-the-bottom local minimum.
+  * `upright` is exp(−2‖(0, 0, −1) − g‖²) (mjlab), a reward where `orientation` is a penalty.
+  * `dof_pos_ref` applies only within `dof_pos_ref_band` of the target height when the band
+    is set (the paper's code: near standing only), so that it does not fight the get-up.
   * Hip roll is Σ over both hips of (q − q_ref)² with the left/right-mirrored reference
     (q_ref for the left hip, −q_ref for the right: positive left roll and negative right roll
     both spread the legs).
@@ -25,7 +32,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jax_env.config import REWARD_TERMS, RewardParams, SuccessConfig
+from jax_env.config import REWARD_TERMS, RewardParams, RewardShaping, SuccessConfig
 
 
 @struct.dataclass
@@ -33,6 +40,7 @@ class Quantities:
   """Per-step physical quantities the reward terms and the success detector read, [B, ...]."""
 
   base_height: jax.Array  # [B] Trunk origin above the floor
+  waist_height: jax.Array  # [B] Waist body origin above the floor
   gravity: jax.Array  # [B, 3] unit gravity direction in the IMU frame
   q: jax.Array  # [B, 23] joint positions
   q_ref: jax.Array  # [23] the `stand` pose
@@ -67,7 +75,11 @@ def orientation(x: Quantities, p: RewardParams) -> jax.Array:
 
 
 def dof_pos_ref(x: Quantities, p: RewardParams) -> jax.Array:
-  return jnp.sum((x.q_ref - x.q) ** 2, axis=-1)
+  err = jnp.sum((x.q_ref - x.q) ** 2, axis=-1)
+  if p.dof_pos_ref_band <= 0:
+    return err
+  near = jnp.abs(x.base_height - p.base_height_target) < p.dof_pos_ref_band
+  return jnp.where(near, err, 0.0)
 
 
 def torques(x: Quantities, p: RewardParams) -> jax.Array:
@@ -110,28 +122,60 @@ def hip_roll(x: Quantities, p: RewardParams) -> jax.Array:
   return jnp.sum((x.hip_roll - ref) ** 2, axis=-1)
 
 
+def _rising_height(h, target):
+  return (jnp.exp(jnp.minimum(h, target)) - 1.0) / (jnp.exp(target) - 1.0)
+
+
+def trunk_height(x: Quantities, p: RewardParams) -> jax.Array:
+  return _rising_height(x.base_height, p.base_height_target)
+
+
+def waist_height(x: Quantities, p: RewardParams) -> jax.Array:
+  return _rising_height(x.waist_height, p.waist_height_target)
+
+
+def upright(x: Quantities, p: RewardParams) -> jax.Array:
+  down = jnp.array([0.0, 0.0, -1.0])
+  return jnp.exp(-2.0 * jnp.sum((x.gravity - down) ** 2, axis=-1))
+
+
 TERMS = {
     "survival": survival, "base_height": base_height, "standing": standing,
     "orientation": orientation, "dof_pos_ref": dof_pos_ref, "torques": torques,
     "dof_vel": dof_vel, "dof_acc": dof_acc, "root_acc": root_acc, "action_rate": action_rate,
     "dof_pos_limits": dof_pos_limits, "torque_fatigue": torque_fatigue, "power": power,
-    "hip_roll": hip_roll,
+    "hip_roll": hip_roll, "trunk_height": trunk_height, "waist_height": waist_height,
+    "upright": upright,
 }
 assert tuple(TERMS) == REWARD_TERMS
 
 
-def compute(x: Quantities, weights, params: RewardParams) -> tuple[jax.Array, dict]:
+def compute(x: Quantities, weights, params: RewardParams,
+            shaping: RewardShaping = RewardShaping(), ctrl_dt: float = 1.0,
+            penalty_scale: jax.Array | float = 1.0) -> tuple[jax.Array, dict]:
   """(total reward [B], {"reward/<term>": weighted value [B]}) over the terms with weight ≠ 0.
 
-  Every term appears in the metrics (zero where its weight is zero) so logs have a fixed set.
+  Penalties (negative weights) are multiplied by `penalty_scale` (the stage's penalty
+  schedule, [B] or scalar); with `shaping.scale_by_ctrl_dt` every weight is multiplied by the
+  control period, and with `shaping.clip_at_zero` the total is clipped at zero from below
+  (the per-term metrics stay unclipped). Every term appears in the metrics (zero where its
+  weight is zero) so logs have a fixed set.
   """
   total = jnp.zeros_like(x.base_height)
+  dt = ctrl_dt if shaping.scale_by_ctrl_dt else 1.0
   metrics = {}
   for name, fn in TERMS.items():
-    w = float(weights[name])
-    value = w * fn(x, params) if w != 0.0 else jnp.zeros_like(total)
+    w = float(weights[name]) * dt
+    if w == 0.0:
+      value = jnp.zeros_like(total)
+    elif w < 0.0:
+      value = w * penalty_scale * fn(x, params)
+    else:
+      value = w * fn(x, params)
     metrics[f"reward/{name}"] = value
     total = total + value
+  if shaping.clip_at_zero:
+    total = jnp.maximum(total, 0.0)
   return total, metrics
 
 

@@ -12,9 +12,12 @@ Every pose is placed so that its lowest collision point sits `clearance` above t
 heading, with the DR draws for joint angles, base xy and base velocity applied.
 
 Scenarios (docs/contracts.md): the six key states of the paper's KSI (keyframes, with Gaussian
-joint noise `ksi_joint_noise`), lying `supine` / `prone`, and the 3D falls of stage 2 — `lateral`
+joint noise `ksi_joint_noise`), lying `supine` / `prone`, the 3D falls of stage 2 — `lateral`
 (on either side), `sitting`, `crossed_legs`, and `random_drop` (random orientation and joint
-angles, dropped from up to 0.3 m).
+angles, dropped from up to 0.3 m) — and two upright starts from the paper authors' code:
+`stand` (the `stand` keyframe with the key-state joint noise; 3 of 10 of its stage-1 episodes
+start standing, so that the policy learns to hold the goal it is pushed towards) and `squat`
+(its deep squat on the feet: hip −1.46, knee 1.64, ankle −0.41, Trunk pitched 0.24 forward).
 """
 
 from __future__ import annotations
@@ -37,6 +40,12 @@ SETTLING_SCENARIOS = frozenset({"lateral", "sitting", "crossed_legs", "random_dr
 # Lowest point above the floor at the start: resting poses touch down within a few ms.
 REST_CLEARANCE = 0.005
 DROP_HEIGHT = (0.05, 0.3)
+# Scenarios that start at the keyframe of their own name (plus joint noise).
+KEYFRAME_SCENARIOS = KSI_SCENARIOS + ("stand",)
+# The paper code's deep squat (its stage-1 initial state 2): hip, knee and ankle pitch, and the
+# Trunk's forward pitch; the feet end up flat (0.24 − 1.46 + 1.64 − 0.41 ≈ 0).
+SQUAT = {"Hip_Pitch": -1.46, "Knee_Pitch": 1.64, "Ankle_Pitch": -0.41}
+SQUAT_PITCH = 0.24
 # With an obstacle, the legs start spread by this hip roll so the ball fits between them.
 OBSTACLE_LEG_SPREAD = 0.15
 
@@ -85,7 +94,7 @@ class ScenarioSampler:
     self.lo = np.asarray(mj_model.jnt_range[jnt, 0], np.float32)
     self.hi = np.asarray(mj_model.jnt_range[jnt, 1], np.float32)
     self.stand = np.asarray(robot.stand_pose(mj_model), np.float32)
-    self.key_qpos = np.stack([robot.keyframe(mj_model, k)[0] for k in KSI_SCENARIOS]
+    self.key_qpos = np.stack([robot.keyframe(mj_model, k)[0] for k in KEYFRAME_SCENARIOS]
                              ).astype(np.float32)
     self.noise = stage.scenario_params.ksi_joint_noise
     weights = np.array([stage.scenarios[s] for s in SCENARIOS], np.float32)
@@ -117,8 +126,8 @@ class ScenarioSampler:
 
   @staticmethod
   def _family(scenario: str) -> str:
-    if scenario in KSI_SCENARIOS:
-      return "ksi"
+    if scenario in KEYFRAME_SCENARIOS:
+      return "keyframe"
     if scenario in ("supine", "prone"):
       return "lying"
     return scenario
@@ -137,10 +146,10 @@ class ScenarioSampler:
     def between(u, a, b):
       return a + (b - a) * u
 
-    if family == "ksi":
+    if family == "keyframe":
       # Row i of the table is the keyframe of SCENARIOS[i] (zeros for other scenarios).
       table = np.zeros((len(SCENARIOS), self.key_qpos.shape[1]), np.float32)
-      for i, name in enumerate(KSI_SCENARIOS):
+      for i, name in enumerate(KEYFRAME_SCENARIOS):
         table[SCENARIOS.index(name)] = self.key_qpos[i]
       table = jnp.asarray(table)
 
@@ -160,6 +169,16 @@ class ScenarioSampler:
         quat = quat_mul(axis_angle_quat(_X, tilt), axis_angle_quat(_Y, pitch))
         return _Pose(self._clip(q), quat, rest)
       return lying
+
+    if family == "squat":
+      def squat(z, scenario):
+        q = stand
+        for side in ("Left", "Right"):
+          for joint, value in SQUAT.items():
+            q = self._set(q, f"{side}_{joint}", value)
+        q = q + self.noise * z.normal
+        return _Pose(self._clip(q), axis_angle_quat(_Y, SQUAT_PITCH), rest)
+      return squat
 
     if family == "lateral":
       def lateral(z, scenario):

@@ -160,6 +160,8 @@ pub enum ProtocolArg {
     Paper,
     /// A reduced protocol for CI and smoke checks.
     Quick,
+    /// Stand, the six key states, supine and prone under nominal conditions.
+    Keystate,
 }
 
 impl ProtocolArg {
@@ -167,18 +169,19 @@ impl ProtocolArg {
         match self {
             ProtocolArg::Paper => "paper",
             ProtocolArg::Quick => "quick",
+            ProtocolArg::Keystate => "keystate",
         }
     }
 }
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
-    /// A checkpoint directory, or a run directory (its last stage's final checkpoint).
+    /// A checkpoint directory, or a run directory (the final checkpoint of its last completed stage).
     pub target: PathBuf,
     /// Which protocol set to run.
     #[arg(long, value_enum, default_value = "paper")]
     pub protocol: ProtocolArg,
-    /// Trials per protocol cell [default: 100 for paper, 8 for quick].
+    /// Trials per protocol cell [default: 100 for paper, 8 for quick and keystate].
     #[arg(long, value_name = "N")]
     pub trials: Option<u32>,
     /// Physics backend [default: the machine's default, see `hifar doctor`].
@@ -197,9 +200,9 @@ pub struct EvalArgs {
 
 #[derive(Debug, Args)]
 pub struct RolloutArgs {
-    /// A checkpoint directory, or a run directory (its last stage's final checkpoint).
+    /// A checkpoint directory, or a run directory (the final checkpoint of its last completed stage).
     pub target: PathBuf,
-    /// Initial scenario (supine, prone, lateral, sitting, crossed_legs, random_drop, ksi_*).
+    /// Initial scenario (supine, prone, lateral, sitting, crossed_legs, random_drop, stand, squat, ksi_*).
     #[arg(long, default_value = "supine")]
     pub scenario: String,
     /// A push of this many newtons 0.8 s into the recovery, for 200 ms, as in the paper.
@@ -245,7 +248,7 @@ pub struct ReportArgs {
 
 #[derive(Debug, Args)]
 pub struct ExportArgs {
-    /// A checkpoint directory, or a run directory (its last stage's final checkpoint).
+    /// A checkpoint directory, or a run directory (the final checkpoint of its last completed stage).
     pub target: PathBuf,
     /// Output ONNX file.
     #[arg(long, value_name = "FILE")]

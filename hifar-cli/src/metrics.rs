@@ -39,27 +39,35 @@ pub fn read_jsonl(path: &Path) -> io::Result<Vec<Value>> {
 }
 
 /// The scalars of one progress report, with TensorBoard tags: top-level numbers under their
-/// own name, nested dicts (`losses`, `rewards`, …) as `<dict>/<key>`.
+/// own name, nested dicts (`losses`, `rewards`, `monitor`, …) as `<dict>/<key>`, at any depth
+/// (`monitor/stand_rate/<scenario>`). Nulls, strings and lists are skipped.
 pub fn scalars(progress: &Map<String, Value>) -> Vec<(String, f64)> {
     const SKIP: &[&str] = &["iteration", "env_steps", "total_env_steps", "wall_time", "elapsed_s"];
     let mut out = Vec::new();
     for (key, value) in progress {
-        if SKIP.contains(&key.as_str()) {
-            continue;
-        }
-        match value {
-            Value::Number(n) => out.extend(n.as_f64().map(|f| (key.clone(), f))),
-            Value::Object(inner) => {
-                for (name, value) in inner {
-                    if let Some(f) = value.as_f64() {
-                        out.push((format!("{key}/{name}"), f));
-                    }
-                }
-            }
-            _ => {}
+        if !SKIP.contains(&key.as_str()) {
+            flatten(key.clone(), value, &mut out);
         }
     }
     out
+}
+
+fn flatten(tag: String, value: &Value, out: &mut Vec<(String, f64)>) {
+    match value {
+        Value::Number(n) => out.extend(n.as_f64().map(|f| (tag, f))),
+        Value::Object(inner) => {
+            for (name, value) in inner {
+                flatten(format!("{tag}/{name}"), value, out);
+            }
+        }
+        _ => {}
+    }
+}
+
+/// `monitor.mean_stand_rate` of a progress report or metrics line: the deterministic
+/// monitor's mean stand rate over its scenarios, on the iterations where it ran.
+pub fn monitor_mean_stand_rate(progress: &Value) -> Option<f64> {
+    progress.get("monitor")?.get("mean_stand_rate")?.as_f64()
 }
 
 /// A TensorBoard event file (`events.out.tfevents.<secs>.<host>`).
@@ -246,6 +254,34 @@ mod tests {
                 ("rewards/survival".to_string(), 1.0)
             ]
         );
+    }
+
+    #[test]
+    fn scalars_flatten_the_monitor_and_skip_nulls() {
+        let progress = json!({
+            "env_steps": 100, "max_height": 0.61, "time_standing": null, "penalty_scale": 0.5,
+            "monitor": {
+                "stand_rate": {"supine": 0.5, "stand": 1.0},
+                "recovery_time": {"supine": 2.5, "stand": null},
+                "max_height": {"supine": 0.7, "stand": 0.68},
+                "mean_stand_rate": 0.75
+            }
+        });
+        let tags = scalars(progress.as_object().unwrap());
+        let expected: Vec<(String, f64)> = [
+            ("max_height", 0.61),
+            ("penalty_scale", 0.5),
+            ("monitor/stand_rate/supine", 0.5),
+            ("monitor/stand_rate/stand", 1.0),
+            ("monitor/recovery_time/supine", 2.5),
+            ("monitor/max_height/supine", 0.7),
+            ("monitor/max_height/stand", 0.68),
+            ("monitor/mean_stand_rate", 0.75),
+        ]
+        .into_iter()
+        .map(|(t, v)| (t.to_string(), v))
+        .collect();
+        assert_eq!(tags, expected);
     }
 
     #[test]

@@ -99,8 +99,9 @@ pub const LATERAL_JOINTS: [&str; 2] = ["Left_Hip_Roll", "Right_Hip_Roll"];
 pub const KEYFRAMES: [&str; 7] =
     ["stand", "ksi_prone_1", "ksi_prone_2", "ksi_prone_3", "ksi_supine_1", "ksi_supine_2", "ksi_supine_3"];
 
-/// Initial-state scenarios; `ksi_*` start from the keyframe of the same name.
-pub const SCENARIOS: [&str; 12] = [
+/// Initial-state scenarios; `ksi_*` start from the keyframe of the same name, `stand` and
+/// `squat` on the feet (jax_env/scenarios.py).
+pub const SCENARIOS: [&str; 14] = [
     "ksi_prone_1",
     "ksi_prone_2",
     "ksi_prone_3",
@@ -113,12 +114,15 @@ pub const SCENARIOS: [&str; 12] = [
     "sitting",
     "crossed_legs",
     "random_drop",
+    "stand",
+    "squat",
 ];
 
 pub const TERRAINS: [&str; 3] = ["flat", "slope", "obstacle"];
 
-/// Reward terms of the paper's Table "Components of the Reward Function".
-pub const REWARD_TERMS: [&str; 14] = [
+/// Reward terms of the paper's Table "Components of the Reward Function", then our additions
+/// (`trunk_height`, `waist_height`, `upright`; jax_env/rewards.py).
+pub const REWARD_TERMS: [&str; 17] = [
     "survival",
     "base_height",
     "standing",
@@ -133,6 +137,9 @@ pub const REWARD_TERMS: [&str; 14] = [
     "torque_fatigue",
     "power",
     "hip_roll",
+    "trunk_height",
+    "waist_height",
+    "upright",
 ];
 
 /// Rows of the paper's Table "Domain Randomization Parameters".
@@ -191,6 +198,15 @@ mod tests {
         assert_eq!(mirror_joint("Left_Hip_Roll"), Some("Right_Hip_Roll"));
         assert_eq!(mirror_joint("Waist"), Some("Waist"));
         assert_eq!(mirror_joint("Elbow"), None);
+    }
+
+    #[test]
+    fn curriculum_vocabularies_match_these_lists() {
+        use crate::curriculum::schema::{RewardTerm, Scenario};
+        let scenarios: Vec<&str> = Scenario::ALL.iter().map(|s| s.as_str()).collect();
+        assert_eq!(scenarios, SCENARIOS);
+        let terms: Vec<&str> = RewardTerm::ALL.iter().map(|t| t.as_str()).collect();
+        assert_eq!(terms, REWARD_TERMS);
     }
 
     #[test]

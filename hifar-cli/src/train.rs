@@ -488,13 +488,16 @@ fn train_stage(
             let missed = stage.threshold.filter(|_| !monitor.advance.threshold_met);
             record.status = if missed.is_some() { Status::ThresholdMissed } else { Status::Completed };
             run.write_manifest(manifest)?;
-            let line = format!(
+            let mut line = format!(
                 "stage {} {}: {} env steps, best stand rate {}",
                 stage.name,
                 if status == "finished_early" { "reached its threshold" } else { "used its budget" },
                 group_digits(env_steps),
                 monitor.advance.best_stand_rate.map(|r| format!("{r:.3}")).unwrap_or_else(|| "-".into())
             );
+            if let (Some(latest), Some(best)) = (monitor.det.latest, monitor.det.best) {
+                line.push_str(&format!(", deterministic stand rate {latest:.3} (best {best:.3})"));
+            }
             run.log(&line);
             console.line(&line);
             match missed {
@@ -603,6 +606,9 @@ struct Monitor {
     /// gives the ETA.
     first_report: Option<(Instant, u64)>,
     advance: AdvanceWindow,
+    /// The deterministic monitor's latest and best mean stand rate (`monitor.mean_stand_rate`
+    /// of the reports that carry one).
+    det: DetMonitor,
     /// A failure inside the callback (e.g. a full disk): training is interrupted and the
     /// error reported once Python has returned.
     error: Option<anyhow::Error>,
@@ -653,10 +659,12 @@ impl Monitor {
             last_plain: None,
             first_report: None,
             advance: AdvanceWindow::new(stage.threshold),
+            det: DetMonitor::default(),
             error: None,
         };
         for record in history {
             monitor.advance.observe(record);
+            monitor.det.observe(record);
         }
         Ok(monitor)
     }
@@ -665,6 +673,7 @@ impl Monitor {
         if let Err(err) = self.record(&progress) {
             self.error.get_or_insert(err);
         }
+        self.det.observe(&progress);
         self.draw(&progress);
         // The threshold first: an iteration that meets it finishes the stage even if a signal
         // arrived meanwhile, exactly as an uninterrupted run would (the signal then stops the
@@ -713,6 +722,9 @@ impl Monitor {
         }
         if let Some(rate) = get("stand_rate") {
             message.push_str(&format!("  stand {rate:.2}"));
+        }
+        if let Some(det) = self.det.latest {
+            message.push_str(&format!("  det {det:.2}"));
         }
         if phase != "ppo" {
             message.push_str(&format!("  [{phase}]"));
@@ -787,9 +799,38 @@ impl AdvanceWindow {
     }
 }
 
+/// The deterministic monitor's mean stand rate over a stage's progress reports: the latest
+/// value (shown as `det` on the progress line) and the best.
+#[derive(Debug, Default)]
+struct DetMonitor {
+    latest: Option<f64>,
+    best: Option<f64>,
+}
+
+impl DetMonitor {
+    fn observe(&mut self, progress: &Value) {
+        if let Some(rate) = metrics::monitor_mean_stand_rate(progress) {
+            self.latest = Some(rate);
+            self.best = Some(self.best.map_or(rate, |best| best.max(rate)));
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_monitor_keeps_its_latest_and_best_mean() {
+        let mut det = DetMonitor::default();
+        det.observe(&json!({"stand_rate": 0.5}));
+        assert_eq!((det.latest, det.best), (None, None), "reports without a monitor change nothing");
+        det.observe(&json!({"monitor": {"stand_rate": {"supine": 0.8}, "mean_stand_rate": 0.8}}));
+        det.observe(&json!({"stand_rate": 0.1, "max_height": null}));
+        det.observe(&json!({"monitor": {"mean_stand_rate": 0.6}}));
+        det.observe(&json!({"monitor": {"mean_stand_rate": null}}));
+        assert_eq!((det.latest, det.best), (Some(0.6), Some(0.8)));
+    }
 
     fn report(phase: &str, rate: Option<f64>) -> Value {
         json!({"phase": phase, "stand_rate": rate})

@@ -45,9 +45,34 @@ class Policy:
     return jnp.zeros((batch, self.history_len, self.obs_size), jnp.float32)
 
 
+def check_adaptation_trained(meta: dict, checkpoint_dir: str | Path) -> None:
+  """Refuses an RMA checkpoint whose adaptation module was never trained.
+
+  The deployable actor acts through the adaptation module; until a stage's adaptation phase has
+  run, that module is its random initialisation (or whatever the stage started from), so acting,
+  evaluating, recording or exporting it would measure noise. The learner counts the phase's env
+  steps in checkpoint.json's "learner" section (`adaptation_env_steps`); a checkpoint with
+  `network.rma` true whose count is 0, or that has no such section, is refused. The one rule
+  `hifar act`, `eval`, `rollout` and `export` share.
+  """
+  network = meta.get("network")
+  if not (isinstance(network, dict) and network.get("rma") is True):
+    return
+  learner = meta.get("learner")
+  steps = learner.get("adaptation_env_steps") if isinstance(learner, dict) else None
+  if isinstance(steps, (int, float)) and not isinstance(steps, bool) and steps > 0:
+    return
+  raise ckpt_lib.CheckpointError(
+      f"{checkpoint_dir}: its RMA adaptation module was never trained (stage "
+      f"{meta.get('stage', '?')} ended before its adaptation phase); train with "
+      "rma.adaptation_env_steps > 0 or evaluate a later checkpoint")
+
+
 def load(checkpoint_dir: str | Path) -> Policy:
+  """The deployable actor of a checkpoint (refused if its adaptation module is untrained)."""
   d = Path(checkpoint_dir)
   ck = ckpt_lib.load(d)
+  check_adaptation_trained(ck.meta, d)
   nets = nets_lib.Networks(ck.network_config())
   params, normalizer = ckpt_lib.restore_params(nets, ck.tensors)
   return Policy(directory=d, meta=ckpt_lib.read_meta(d), nets=nets, params=params,

@@ -16,10 +16,17 @@ disturbance; conditions.evaluation_stage) and changes one thing:
 | torque_limit   | "Torque Limit Experiments"          | 85 %, 75 % of the actuator limits     |
 | random_initial | real robot, qualitative             | lateral, sitting, crossed legs, drop  |
 | terrain        | real robot, qualitative             | slope, obstacle between the legs      |
+| keystate       | — (our diagnostic)                  | stand, the six KSI key states, supine,|
+|                |                                     | prone: one cell per start state       |
 
 The paper's recovery times (2.711 ± 0.319 s supine, 2.875 ± 0.474 s prone) come from its
 real-robot table, the only recovery times it reports; its random-initial-state and terrain
 experiments were run on the real robot and reported without numbers, so those cells carry none.
+
+The `keystate` protocol is not the paper's: it measures, under the same nominal setup, how well
+the policy gets up (or stays up) from each start state of its key-state curriculum — the
+`stand` keyframe, the six key states of KSI, and lying supine and prone — so a stage whose
+training stand rate hides a start state it never learned shows it cell by cell.
 """
 
 from __future__ import annotations
@@ -29,9 +36,9 @@ import dataclasses
 from jax_env.evaluation.conditions import Condition, planar_direction
 
 EXPERIMENTS: tuple[str, ...] = ("standard", "planar_push", "lateral_push", "load", "friction",
-                                "torque_limit", "random_initial", "terrain")
-PROTOCOLS: tuple[str, ...] = ("paper", "quick")
-DEFAULT_TRIALS = {"paper": 100, "quick": 8}
+                                "torque_limit", "random_initial", "terrain", "keystate")
+PROTOCOLS: tuple[str, ...] = ("paper", "quick", "keystate")
+DEFAULT_TRIALS = {"paper": 100, "quick": 8, "keystate": 8}
 # The paper's tables list prone first.
 LYING = ("prone", "supine")
 
@@ -45,6 +52,9 @@ FRICTIONS = (0.8, 0.6, 0.4, 0.2, 0.1)
 TORQUE_LIMITS = (0.85, 0.75)
 RANDOM_INITIAL = ("lateral", "sitting", "crossed_legs", "random_drop")
 TERRAIN_CELLS = ("slope", "obstacle")
+# The keystate protocol's start states: standing, the key states of KSI, the lying poses.
+KEYSTATE_CELLS = ("stand", "ksi_prone_1", "ksi_prone_2", "ksi_prone_3", "ksi_supine_1",
+                  "ksi_supine_2", "ksi_supine_3", "supine", "prone")
 
 PAPER_SUCCESS = {
     ("standard", "prone"): (1.0,), ("standard", "supine"): (1.0,),
@@ -140,9 +150,17 @@ def quick_cells() -> list[Cell]:
   return [by_label[label] for label in _QUICK]
 
 
+def keystate_cells() -> list[Cell]:
+  """One cell per start state of the key-state curriculum, each under the nominal setup (no
+  push, nominal mass and friction, no randomization); the paper reports none of them."""
+  return [Cell("keystate", s, None, Condition(scenario=s)) for s in KEYSTATE_CELLS]
+
+
 def cells(protocol: str) -> list[Cell]:
   if protocol == "paper":
     return paper_cells()
   if protocol == "quick":
     return quick_cells()
+  if protocol == "keystate":
+    return keystate_cells()
   raise ValueError(f"unknown protocol {protocol!r}; valid: {', '.join(PROTOCOLS)}")

@@ -9,7 +9,10 @@ a stage still running is drawn as far as it got.
 Training curves are drawn against the run's cumulative env steps: stage k starts where stage
 k-1 ended (its recorded env steps, the PPO budget plus the RMA adaptation steps), so the whole
 curriculum reads left to right with a boundary and the stage's name at every change, and the
-RMA adaptation phase of each stage shaded. Evaluations are drawn per protocol and experiment:
+RMA adaptation phase of each stage shaded. Lines that carry a `monitor` (the deterministic
+per-start-state check of `[stage.monitor]`) add the stand rate of every start state on the same
+axis, the paper's step-like rises of key-state initialization (its Fig. 4); without one that
+plot is skipped with a note. Evaluations are drawn per protocol and experiment:
 success rate with its 95% Wilson interval and recovery time (mean ± std) against the
 setting, one series per fall scenario and evaluated backend (sim-to-sim when a policy was
 evaluated in both MJX and C MuJoCo), the paper's numbers as hollow markers.
@@ -36,6 +39,7 @@ CURVES_SIZE = (10.0, 9.0)  # inches: three stacked panels
 STANDING_SIZE = (10.0, 4.5)
 LOSSES_SIZE = (12.0, 7.0)  # 2 × 3 panels
 EVAL_SIZE = (10.0, 7.5)  # success rate over recovery time
+MONITOR_SIZE = (11.0, 5.0)  # stand rate per start state, legend at the right
 
 LOSS_PANELS = (
     ("policy", "policy loss"),
@@ -57,6 +61,8 @@ EXPERIMENTS = {
     "torque_limit": ("Torque limit", "torque limit (fraction of nominal)"),
     "random_initial": ("Random initial states", "initial state"),
     "terrain": ("Stage-2 terrains", "terrain"),
+    "keystate": ("Start states of the key-state curriculum (nominal conditions)",
+                 "start state"),
 }
 
 SCENARIO_COLORS = {"prone": "tab:blue", "supine": "tab:orange"}
@@ -390,6 +396,60 @@ def plot_standing_reward(spans: Sequence[StageSpan], path: Path) -> int:
   return drawn
 
 
+def monitor_scenarios(spans: Sequence[StageSpan]) -> list[str]:
+  """The start states of every `monitor` in metrics.jsonl, in order of first appearance."""
+  names: list[str] = []
+  for span in spans:
+    for r in span.records:
+      rates = _monitor_rates(r)
+      names += [n for n in rates if n not in names]
+  return names
+
+
+def _monitor_rates(record: dict) -> dict:
+  monitor = record.get("monitor")
+  rates = monitor.get("stand_rate") if isinstance(monitor, dict) else None
+  return rates if isinstance(rates, dict) else {}
+
+
+def _monitor_mean(record: dict) -> Any:
+  monitor = record.get("monitor")
+  return monitor.get("mean_stand_rate") if isinstance(monitor, dict) else None
+
+
+def plot_monitor(spans: Sequence[StageSpan], path: Path) -> int:
+  """The deterministic monitor's stand rate per start state (one line each, the same color in
+  every stage, not joined across a stage boundary) and their mean; points drawn."""
+  from matplotlib import colormaps
+  fig, axes = _figure(MONITOR_SIZE, 1, 1)
+  ax = axes[0, 0]
+  names = monitor_scenarios(spans)
+  palette = colormaps["tab10" if len(names) <= 10 else "tab20"]
+  drawn = 0
+  series = [(name, lambda r, name=name: _scaled(_monitor_rates(r).get(name), 100.0),
+             dict(color=palette(i % palette.N), linewidth=1.4, marker="o", markersize=3))
+            for i, name in enumerate(names)]
+  series.append(("mean", lambda r: _scaled(_monitor_mean(r), 100.0),
+                 dict(color="black", linewidth=2.2, linestyle="--")))
+  for name, get, style in series:
+    labelled = False
+    for span in spans:
+      x, y = _column(span, get)
+      if len(x) == 0:
+        continue
+      drawn += len(x)
+      ax.plot(x, y, label=None if labelled else name,
+              **({**style, "marker": None} if len(x) > 60 else style))
+      labelled = True
+  ax.set_ylim(-5, 112)  # room for the stage names above 100 %
+  ax.set_ylabel("stand rate (%)\n(deterministic policy)")
+  _steps_axis(ax, spans)
+  _legend_outside(ax)
+  ax.set_title("Stand rate per start state (deterministic monitor)", fontsize=13)
+  _save(fig, path)
+  return drawn
+
+
 def plot_losses(spans: Sequence[StageSpan], path: Path) -> dict[str, int]:
   fig, axes = _figure(LOSSES_SIZE, 2, 3)
   counts = {}
@@ -624,6 +684,29 @@ def _stages_table(spans: Sequence[StageSpan]) -> list[str]:
   return lines
 
 
+def _monitor_table(spans: Sequence[StageSpan]) -> list[str]:
+  """The last monitor of every stage that has one: stand rate per start state."""
+  names = monitor_scenarios(spans)
+  last = []
+  for span in spans:
+    rows = [r for r in span.records if _monitor_rates(r) or
+            _number(_monitor_mean(r)) is not None]
+    if rows:
+      last.append((span, rows[-1]))
+  if not last:
+    return []
+  lines = ["Last monitor of each stage:", "",
+           "| stage | env steps | mean | " + " | ".join(f"`{n}`" for n in names) + " |",
+           "|---|---:|---:|" + "---:|" * len(names)]
+  for span, r in last:
+    rates = _monitor_rates(r)
+    lines.append(f"| {span.name} | {int(r['env_steps']):,} "
+                 f"| {_percent(_number(_monitor_mean(r)))} | "
+                 + " | ".join(_percent(_number(rates.get(n))) if n in rates else "—"
+                              for n in names) + " |")
+  return lines + [""]
+
+
 def _cell_entry(cell: dict | None) -> str:
   if cell is None:
     return "—"
@@ -726,6 +809,23 @@ def report(request: dict) -> dict:
         md.append(f"- Stage {span.name} has a single iteration: its curves are one point.")
       elif not span.records and span.status not in ("pending",):
         md.append(f"- Stage {span.name} ({span.status}) has no metrics.")
+    md += ["", "### Stand rate per start state", ""]
+    if any(_monitor_rates(r) or _number(_monitor_mean(r)) is not None
+           for span in spans for r in span.records):
+      monitor = out / "monitor_stand_rate.png"
+      plot_monitor(spans, monitor)
+      plots.append(monitor)
+      md += ["The deterministic monitor (`[stage.monitor]`: the policy's mean action, no "
+             "action noise, a fixed number of episodes from each start state every few "
+             "iterations): the fraction of episodes from each start state that reached stable "
+             "standing, and their mean (dashed), against the cumulative env steps; dashed "
+             "vertical lines mark stage boundaries. With key-state initialization it rises in "
+             "steps as the policy learns to get up from each state in turn.", "",
+             f"![stand rate per start state]({link(monitor)})", ""]
+      md += _monitor_table(spans)
+    else:
+      md.append("No iteration of metrics.jsonl carries a `monitor` (the deterministic "
+                "per-start-state check, `[stage.monitor] every > 0`): this plot is skipped.")
     standing = out / "standing_reward.png"
     drawn = plot_standing_reward(spans, standing)
     plots.append(standing)

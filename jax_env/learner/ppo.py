@@ -187,6 +187,20 @@ def _pmean(x, axis_name):
   return x if axis_name is None else jax.lax.pmean(x, axis_name)
 
 
+def bound_action_std(train_params: dict, max_action_std: float | None) -> dict:
+  """Projects the policy's log-std back to at most log(max_action_std) after a step.
+
+  The env clips actions, so beyond the clip a larger std costs the policy nothing while the
+  entropy bonus keeps paying for it: without a bound the std runs away (hifar's run B went
+  from 0.5 to 2.8). A projection, not a squashing, so the reported std is the one sampled.
+  """
+  if max_action_std is None:
+    return train_params
+  policy = dict(train_params["policy"])
+  policy["log_std"] = jnp.minimum(policy["log_std"], jnp.log(max_action_std))
+  return {**train_params, "policy": policy}
+
+
 def ppo_update(state: LearnerState, data: Transition, final_obs, final_privileged,
                key: jax.Array, *, nets: nets_lib.Networks, cfg, mirror_weight: float, maps,
                axis_name: str | None = None):
@@ -221,6 +235,7 @@ def ppo_update(state: LearnerState, data: Transition, final_obs, final_privilege
     updates, opt_state = optimizer.update(grads, opt_state)
     train_params = optax.apply_updates(
         train_params, jax.tree_util.tree_map(lambda u: -lr * u, updates))
+    train_params = bound_action_std(train_params, cfg.max_action_std)
     metrics["learning_rate"] = lr
     return (train_params, opt_state, lr), metrics
 

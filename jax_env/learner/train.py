@@ -4,7 +4,10 @@ The loop, per iteration (one jitted, `jax.pmap`ped call over all local devices):
   rollout   `unroll_length` control steps of every environment (jax.lax.scan), actions sampled
             from the Gaussian policy whose latent comes from the privileged encoder;
   update    PPO epochs (ppo.ppo_update), gradients averaged over devices.
-Then the progress callback, then a checkpoint every `checkpoint_every` iterations. When the
+Then the deterministic monitor where it is due (monitor.py: the noise-free policy's stand rate
+per start state), the progress callback, and a checkpoint every `checkpoint_every` iterations.
+Between iterations the host sets the penalty schedule's scale for the next rollout
+(`PenaltyScale`), and a fresh environment batch has its episode clocks staggered once. When the
 PPO budget (`advance.env_steps`) is spent or the callback answers "finish", the RMA adaptation
 phase runs for `rma.adaptation_env_steps` (rollouts acting with the adaptation module's own
 estimate, then latent regression, rma.adaptation_update), and a final checkpoint is written.
@@ -36,12 +39,16 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jax_env.learner import checkpoint as ckpt_lib
 from jax_env.learner import mirror as mirror_lib
+from jax_env.learner import monitor as monitor_lib
 from jax_env.learner import networks as nets_lib
 from jax_env.learner import ppo as ppo_lib
 from jax_env.learner import rma as rma_lib
 
 AXIS = "i"
 ANSWERS = ("continue", "finish", "interrupt")
+# Episode metrics reported as means over the episodes that ended in an iteration: the highest
+# Trunk height (m) and the time spent standing (s).
+EPISODE_MEANS = ("max_height", "time_standing")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,12 +61,17 @@ class LearnerConfig:
   mirror_weight: float
   env_steps: int  # the PPO budget: advance.env_steps
   action: Mapping[str, Any]  # {"mapping", "scale", "clip"}, recorded in checkpoints
+  penalty_schedule: Any = None  # config.PenaltySchedule, or None: penalties at full weight
+  monitor: Any = None  # config.MonitorConfig with its scenarios resolved, or None: off
 
   @classmethod
   def from_stage(cls, stage) -> "LearnerConfig":
+    monitor = dataclasses.replace(stage.monitor, scenarios=stage.monitor_scenarios)
     return cls(stage_name=stage.name, ppo=stage.ppo, rma=stage.rma,
                mirror_weight=stage.mirror.weight, env_steps=stage.advance.env_steps,
-               action=dataclasses.asdict(stage.action))
+               action=dataclasses.asdict(stage.action),
+               penalty_schedule=stage.reward_shaping.penalty_schedule,
+               monitor=monitor if monitor.every > 0 else None)
 
   def network_config(self, env) -> nets_lib.NetworkConfig:
     p, r = self.ppo, self.rma
@@ -69,6 +81,27 @@ class LearnerConfig:
         value_hidden=tuple(p.value_hidden), activation=p.activation, rma=bool(r.enabled),
         latent_dim=r.latent_dim, encoder_hidden=tuple(r.encoder_hidden),
         history_len=r.history_len, initial_action_std=p.initial_action_std)
+
+
+@dataclasses.dataclass(frozen=True)
+class PenaltyScale:
+  """The stage's penalty schedule as the learner applies it, one value per iteration."""
+
+  schedule: Any  # config.PenaltySchedule or None
+
+  @property
+  def initial(self) -> float:
+    return 1.0 if self.schedule is None else float(self.schedule.scale(0.0))
+
+  def after(self, current: float, env_steps: int, stand_rate: float | None) -> float:
+    """The scale for the next iteration, given this one's env steps and stand rate."""
+    if self.schedule is None:
+      return 1.0
+    if self.schedule.by == "env_steps":
+      return float(self.schedule.scale(env_steps))
+    if stand_rate is None:
+      return current
+    return max(current, float(self.schedule.scale(stand_rate)))  # a ratchet
 
 
 def seed_key(seed: int) -> jax.Array:
@@ -192,6 +225,9 @@ def _step_stats(nxt) -> dict[str, jax.Array]:
       "return": jnp.sum(done * em["return"]),
       "steps": jnp.asarray(done.shape[0], jnp.float32),
   }
+  for k in EPISODE_MEANS:
+    if k in em:  # optional episode metrics of the environment API
+      stats[k] = jnp.sum(done * em[k])
   for k, v in nxt.metrics.items():
     if k.startswith("reward/"):
       stats[k] = jnp.sum(v)
@@ -204,16 +240,25 @@ def _summarize(stats: Mapping[str, Any]) -> dict[str, Any]:
   episodes, successes = s["episodes"], s["successes"]
   rewards = {k[len("reward/"):]: s[k] / max(s["steps"], 1.0)
              for k in s if k.startswith("reward/")}
+  per_episode = lambda k: s[k] / episodes if episodes > 0 and k in s else None
   return {
       "rewards": rewards,
-      "stand_rate": successes / episodes if episodes > 0 else None,
+      "stand_rate": per_episode("successes"),
       "recovery_time": s["recovery_time"] / successes if successes > 0 else None,
-      "episode_return": s["return"] / episodes if episodes > 0 else None,
+      "episode_return": per_episode("return"),
+      **{k: per_episode(k) for k in EPISODE_MEANS if k in s},
   }
 
 
 # ---------------------------------------------------------------------------------------------
 # The jitted iteration functions.
+
+
+def _with_penalty_scale(env, env_state, scale):
+  """The env state with the penalty schedule's scale (envs without penalties ignore it)."""
+  if not hasattr(env, "with_penalty_scale"):
+    return env_state
+  return env.with_penalty_scale(env_state, scale)
 
 
 def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devices):
@@ -223,8 +268,9 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
   def scan_stats(stats):
     return jax.tree_util.tree_map(lambda x: jax.lax.psum(jnp.sum(x), AXIS), stats)
 
-  def ppo_iteration(learner: ppo_lib.LearnerState, env_state, history, key):
+  def ppo_iteration(learner: ppo_lib.LearnerState, env_state, history, key, penalty_scale):
     k_roll, k_update = jax.random.split(key)
+    env_state = _with_penalty_scale(env, env_state, penalty_scale)
     params, normalizer = learner.params, learner.normalizer
     log_std = params["policy"]["log_std"]
     dist = nets.action_distribution
@@ -248,8 +294,10 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
         mirror_weight=config.mirror_weight, maps=maps, axis_name=AXIS)
     return learner, env_state, history, metrics, scan_stats(stats)
 
-  def adaptation_iteration(learner: ppo_lib.LearnerState, env_state, history, key):
+  def adaptation_iteration(learner: ppo_lib.LearnerState, env_state, history, key,
+                           penalty_scale):
     params, normalizer = learner.params, learner.normalizer
+    env_state = _with_penalty_scale(env, env_state, penalty_scale)
 
     def step(carry, _):
       es, hist = carry
@@ -333,8 +381,9 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
   template = jax.jit(lambda k: ppo_lib.init_learner_state(nets, nets.init(k), p.max_grad_norm,
                                                           p.learning_rate))(k_init)
   learner = template
+  penalty = PenaltyScale(config.penalty_schedule)
   counters = {"iteration": 0, "ppo_env_steps": 0, "adaptation_env_steps": 0, "phase": "ppo",
-              "finished_early": False}
+              "finished_early": False, "penalty_scale": penalty.initial}
   reset = jax.jit(env.reset)
   env_state = None
   history = None
@@ -356,7 +405,7 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
     history = _restore_history(rollout, (batch, net_cfg.history_len, env.obs_size),
                                str(resume_checkpoint))
     key = jnp.asarray(np.asarray(ck.meta["prng_key"], np.uint32))
-    counters = {k: info[k] for k in counters}
+    counters = {k: info.get(k, counters[k]) for k in counters}
     if counters["phase"] not in ("ppo", "adaptation", "done"):
       raise ckpt_lib.CheckpointError(f"{resume_checkpoint}: unknown learner phase "
                                      f"{counters['phase']!r}")
@@ -378,9 +427,14 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
     log(f"stage {config.stage_name}: initialised from {init_checkpoint}")
   if env_state is None:
     env_state = reset(jax.random.split(k_env, batch))
+    if hasattr(env, "stagger"):
+      env_state = jax.jit(env.stagger)(env_state, jax.random.fold_in(k_env, 1))
     history = jnp.zeros((batch, net_cfg.history_len, env.obs_size), jnp.float32)
 
   ppo_iter, adapt_iter = _make_steps(env, nets, config, maps, devices)
+  monitor = monitor_lib.make_monitor(config.monitor, stage_config, nets,
+                                     getattr(env, "backend_name", None),
+                                     jax.random.fold_in(seed_key(seed), 2))
   sharding = _device_sharding(devices)
   learner_d = _put(_replicate(learner, n_dev), sharding)
   env_d = _put(_shard(env_state, n_dev), sharding)
@@ -420,16 +474,27 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
     nonlocal learner_d, env_d, hist_d, key
     key, k_iter = jax.random.split(key)
     t0 = time.perf_counter()
+    scale = counters["penalty_scale"]
     learner_d, env_d, hist_d, metrics, stats = fn(
-        learner_d, env_d, hist_d, _put(jax.random.split(k_iter, n_dev), sharding))
+        learner_d, env_d, hist_d, _put(jax.random.split(k_iter, n_dev), sharding),
+        _put(jnp.full((n_dev,), scale, jnp.float32), sharding))
     metrics, stats = jax.device_get((_unreplicate(metrics), _unreplicate(stats)))
     dt = time.perf_counter() - t0
     counters["iteration"] += 1
     counters[f"{phase}_env_steps"] += steps_per_iter
     progress = {"iteration": counters["iteration"], "env_steps": total_steps(),
                 "steps_per_s": steps_per_iter / max(dt, 1e-9), "total_env_steps": total,
-                "phase": phase, "losses": {k: float(v) for k, v in metrics.items()}}
+                "phase": phase, "losses": {k: float(v) for k, v in metrics.items()},
+                "penalty_scale": scale}
     progress.update(_summarize(stats))
+    if phase == "ppo":
+      counters["penalty_scale"] = penalty.after(scale, counters["ppo_env_steps"],
+                                                progress["stand_rate"])
+      last = counters["ppo_env_steps"] >= ppo_budget
+      if monitor is not None and monitor_lib.is_due(counters["iteration"],
+                                                    config.monitor.every, last):
+        host = _unreplicate(learner_d)
+        progress["monitor"] = monitor(host.params, host.normalizer)
     bad = sorted(k for k, v in progress["losses"].items() if not math.isfinite(v))
     if bad:
       # The parameters are poisoned from here on: stop rather than checkpoint garbage.

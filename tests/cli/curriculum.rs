@@ -1,5 +1,6 @@
-//! Curriculum errors and checkpoint expansion through the real binary. Neither needs Python:
-//! a curriculum is rejected before the interpreter starts, and expansion is pure Rust.
+//! Curriculum errors, checkpoint expansion, and the refusal of checkpoints whose RMA adaptation
+//! module never trained, through the real binary. None needs Python: a curriculum and such a
+//! checkpoint are rejected before the interpreter starts, and expansion is pure Rust.
 
 use std::path::{Path, PathBuf};
 
@@ -168,4 +169,93 @@ fn expand_checkpoint_adds_the_hip_roll_features() {
         .unwrap();
     assert_eq!(missing.status.code(), Some(1));
     assert!(stderr(&missing).contains("nowhere: no such checkpoint directory"), "{}", stderr(&missing));
+}
+
+/// Sets (or with `None` removes) the `"learner"` section of a checkpoint's `checkpoint.json`.
+fn set_learner(checkpoint: &Path, learner: Option<serde_json::Value>) {
+    let path = checkpoint.join("checkpoint.json");
+    let mut meta: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    match learner {
+        Some(learner) => meta["learner"] = learner,
+        None => {
+            meta.as_object_mut().unwrap().remove("learner");
+        }
+    }
+    std::fs::write(&path, serde_json::to_string_pretty(&meta).unwrap()).unwrap();
+}
+
+/// `hifar act|eval|rollout|export TARGET` with arguments that are otherwise fine (`act` only
+/// for a checkpoint: it takes no run directory).
+fn deploy_commands(dir: &Path, target: &Path) -> Vec<(&'static str, std::process::Output)> {
+    let input = dir.join("in.json");
+    std::fs::write(&input, "{\"obs\": [[0.0]]}").unwrap();
+    let run = |args: Vec<std::ffi::OsString>| hifar(dir).args(args).output().unwrap();
+    let t = target.as_os_str().to_owned();
+    let mut outputs = Vec::new();
+    if target.join("checkpoint.json").is_file() {
+        outputs.push(("act", run(vec!["act".into(), t.clone(), "--input".into(), input.into_os_string()])));
+    }
+    outputs.extend([
+        ("eval", run(vec!["eval".into(), t.clone(), "--protocol".into(), "keystate".into(), "--backend".into(), "native".into()])),
+        ("rollout", run(vec!["rollout".into(), t.clone(), "--scenario".into(), "stand".into(), "--out".into(), dir.join("e.mcap").into_os_string()])),
+        ("export", run(vec!["export".into(), t, "--onnx".into(), dir.join("a.onnx").into_os_string()])),
+    ]);
+    outputs
+}
+
+#[test]
+fn a_never_trained_adaptation_module_is_refused_before_python_starts() {
+    let dir = tempdir();
+    let run = dir.path().join("run");
+    let planar = run.join("stages/planar/checkpoints/000000000192");
+    std::fs::create_dir_all(planar.parent().unwrap()).unwrap();
+    planar_checkpoint(&planar);
+    let python_log = dir.path().join(".cache").join("hifar").join("hifar.log");
+    let expect_refusal = |target: &Path, why: &str| {
+        for (command, out) in deploy_commands(dir.path(), target) {
+            let err = stderr(&out);
+            assert_eq!(out.status.code(), Some(1), "{command}: {err}");
+            assert_eq!(err.lines().count(), 1, "{command}: {err}");
+            let expected = format!(
+                "{}: its RMA adaptation module was never trained ({why}); train with rma.adaptation_env_steps > 0 or evaluate a later checkpoint",
+                planar.display()
+            );
+            assert!(err.contains(&expected), "{command}:\n{err}\nexpected …{expected}");
+        }
+        assert!(!python_log.exists(), "the refusal must come before Python starts");
+    };
+
+    // A bare checkpoint without a learner section, then one whose stage never adapted.
+    expect_refusal(&planar, "checkpoint.json has no \"learner\" section recording an adaptation phase");
+    let learner = json!({"iteration": 3, "ppo_env_steps": 192, "adaptation_env_steps": 0, "phase": "done",
+                         "finished_early": false, "num_envs": 8, "devices": 1, "ppo_budget": 192, "adaptation_budget": 0});
+    set_learner(&planar, Some(learner.clone()));
+    let why = "stage planar ended before its adaptation phase";
+    expect_refusal(&planar, why);
+
+    // A run stands for the final checkpoint of its last completed stage: "planar" here, not
+    // the later stage that was interrupted (whose stale final_checkpoint does not exist).
+    let stage = |name: &str, status: &str, final_checkpoint: &str| {
+        json!({"name": name, "seed": 1, "status": status, "init_from": null, "init_checkpoint": null,
+               "final_checkpoint": final_checkpoint, "env_steps": 192, "best_stand_rate": null,
+               "started_at": null, "ended_at": null})
+    };
+    let manifest = json!({
+        "format_version": 1, "name": "run", "status": "interrupted",
+        "curriculum": {"source": "tiny.toml", "copy": "curriculum.toml", "resolved": {"stage": [{"name": "planar"}, {"name": "full"}]}},
+        "seed": 7, "backend": "native", "backend_reason": "test", "num_envs": null, "versions": {},
+        "git_commit": null, "host": "test", "started_at": "2025-01-01T00:00:00Z", "ended_at": null, "sessions": [],
+        "stages": [stage("planar", "completed", "stages/planar/checkpoints/000000000192"),
+                   stage("full", "interrupted", "stages/full/checkpoints/000000000384")],
+    });
+    std::fs::write(run.join("manifest.json"), serde_json::to_string_pretty(&manifest).unwrap()).unwrap();
+    expect_refusal(&run, why);
+
+    // Once the adaptation phase has run, the refusal is gone (act then fails on its input).
+    let mut adapted = learner;
+    adapted["adaptation_env_steps"] = json!(64);
+    set_learner(&planar, Some(adapted));
+    let out = hifar(dir.path()).arg("act").arg(&planar).arg("--input").arg(dir.path().join("in.json")).output().unwrap();
+    assert_eq!(out.status.code(), Some(2), "{}", stderr(&out));
+    assert!(stderr(&out).contains("obs[0] has 1 values"), "{}", stderr(&out));
 }

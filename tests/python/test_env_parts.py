@@ -406,8 +406,8 @@ def test_push_schedule_force_and_duration():
 def _quantities(batch=2, **kw):
   nj, na = robot.NUM_JOINTS, 3
   base = dict(
-      base_height=jnp.full((batch,), 0.67), gravity=jnp.tile(jnp.array([0.0, 0.0, -1.0]),
-                                                              (batch, 1)),
+      base_height=jnp.full((batch,), 0.67), waist_height=jnp.full((batch,), 0.55),
+      gravity=jnp.tile(jnp.array([0.0, 0.0, -1.0]), (batch, 1)),
       q=jnp.zeros((batch, nj)), q_ref=jnp.zeros(nj), qd=jnp.zeros((batch, nj)),
       qdd=jnp.zeros((batch, nj)), root_acc=jnp.zeros((batch, 3)),
       torque=jnp.zeros((batch, nj)), torque_limit=jnp.full((batch, nj), 10.0),
@@ -451,6 +451,60 @@ def test_reward_terms_on_constructed_states():
   # Hip roll: the reference mirrors (left +ref, right −ref).
   np.testing.assert_allclose(r(rewards.hip_roll, hip_roll=jnp.array([[0.1, -0.1], [0.0, 0.0]])),
                              [0, 0.02], rtol=1e-5)
+
+
+GETUP_PARAMS = config.RewardParams(base_height_target=0.67, base_height_sigma=10.0, hip_roll_ref=0.0,
+                             waist_height_target=0.55, dof_pos_ref_band=0.1)
+
+
+
+
+def test_height_terms_rise_from_the_floor_and_saturate_at_the_target():
+  h = jnp.array([0.0, 0.2, 0.4, 0.67, 0.9])
+  x = _quantities(5, base_height=h, waist_height=h - 0.12)
+  trunk = np.asarray(rewards.trunk_height(x, GETUP_PARAMS))
+  waist = np.asarray(rewards.waist_height(x, GETUP_PARAMS))
+  assert trunk[0] == pytest.approx(0.0, abs=1e-6)
+  assert np.all(np.diff(trunk[:4]) > 0.05)  # a gradient all the way from lying
+  assert trunk[3] == pytest.approx(1.0) and trunk[4] == pytest.approx(1.0)
+  assert waist[3] == pytest.approx(1.0, abs=1e-6)  # waist 0.55 at the trunk target
+  # The paper's Gaussian is flat on the floor: what the new terms are for.
+  gauss = np.asarray(rewards.base_height(x, GETUP_PARAMS))
+  assert gauss[1] - gauss[0] < trunk[1] - trunk[0]
+
+
+def test_upright_is_one_upright_and_small_lying():
+  g = jnp.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+  up = np.asarray(rewards.upright(_quantities(3, gravity=g), GETUP_PARAMS))
+  assert up[0] == pytest.approx(1.0)
+  assert up[1] == pytest.approx(math.exp(-4.0))  # lying: ‖(−1, 0, 1)‖² = 2
+  assert up[2] == pytest.approx(math.exp(-8.0))  # upside down
+
+
+def test_dof_pos_ref_applies_only_near_the_target_height():
+  q = jnp.full((2, robot.NUM_JOINTS), 0.1)
+  x = _quantities(2, q=q, base_height=jnp.array([0.65, 0.3]))
+  err = np.asarray(rewards.dof_pos_ref(x, GETUP_PARAMS))
+  assert err[0] == pytest.approx(robot.NUM_JOINTS * 0.01, rel=1e-5)
+  assert err[1] == 0.0
+  everywhere = config.RewardParams(0.67, 10.0, 0.0)  # band 0: the old behaviour
+  assert np.all(np.asarray(rewards.dof_pos_ref(x, everywhere)) > 0)
+
+
+def test_shaping_scales_by_ctrl_dt_clips_at_zero_and_scales_penalties():
+  weights = {t: 0.0 for t in config.REWARD_TERMS} | {"survival": 1.0, "dof_vel": -1.0}
+  qd = jnp.zeros((2, robot.NUM_JOINTS)).at[1, 0].set(3.0)  # env 1: penalty 9 > survival 1
+  x = _quantities(2, qd=qd)
+  plain, _ = rewards.compute(x, weights, GETUP_PARAMS)
+  assert np.allclose(plain, [1.0, -8.0])
+  shaping = config.RewardShaping(scale_by_ctrl_dt=True, clip_at_zero=True)
+  total, terms = rewards.compute(x, weights, GETUP_PARAMS, shaping, ctrl_dt=0.02)
+  assert np.allclose(total, [0.02, 0.0])
+  assert np.allclose(terms["reward/dof_vel"], [0.0, -0.18])  # metrics stay unclipped
+  half, terms = rewards.compute(x, weights, GETUP_PARAMS, config.RewardShaping(), 1.0, 0.5)
+  assert np.allclose(terms["reward/dof_vel"], [0.0, -4.5])  # penalties scaled ...
+  assert np.allclose(terms["reward/survival"], [1.0, 1.0])  # ... rewards not
+  assert np.allclose(half, [1.0, -3.5])
 
 
 def test_reward_weights_and_metrics():

@@ -94,10 +94,23 @@ def test_quick_protocol_is_a_subset_covering_every_experiment():
   paper = {c.label: c for c in protocols.cells("paper")}
   quick = protocols.cells("quick")
   assert all(paper[c.label] == c for c in quick)
-  assert {c.experiment for c in quick} == set(protocols.EXPERIMENTS)
-  assert protocols.DEFAULT_TRIALS == {"paper": 100, "quick": 8}
-  with pytest.raises(ValueError, match="unknown protocol 'full'; valid: paper, quick"):
+  assert {c.experiment for c in quick} == set(protocols.EXPERIMENTS) - {"keystate"}
+  assert protocols.DEFAULT_TRIALS == {"paper": 100, "quick": 8, "keystate": 8}
+  with pytest.raises(ValueError, match="unknown protocol 'full'; valid: paper, quick, keystate"):
     protocols.cells("full")
+
+
+def test_keystate_protocol_has_one_nominal_cell_per_start_state():
+  cells = protocols.cells("keystate")
+  assert [c.scenario for c in cells] == [
+      "stand", "ksi_prone_1", "ksi_prone_2", "ksi_prone_3", "ksi_supine_1", "ksi_supine_2",
+      "ksi_supine_3", "supine", "prone"]
+  for c in cells:
+    assert c.experiment == "keystate" and c.setting == c.scenario and c.value is None
+    assert c.condition == cond_lib.Condition(scenario=c.scenario)  # the standard setup
+    assert c.paper_success_rate is None and c.paper_recovery_time is None
+    assert c.label == f"keystate/{c.scenario}/{c.scenario}"
+  assert all(c.scenario in SCENARIOS for c in cells)
 
 
 def test_conditions_reject_bad_values():
@@ -298,8 +311,20 @@ def fresh_checkpoint(tmp_path_factory):
   ckpt_lib.save(directory, state=state, config=net_cfg, stage="full", env_steps=0,
                 iteration=0, seed=0, key=key, obs_names=env.obs_names,
                 privileged_names=env.privileged_names, action_names=env.action_names,
-                action=stage["action"], extra={ckpt_lib.STAGE_CONFIG_KEY: stage})
+                action=stage["action"], extra={ckpt_lib.STAGE_CONFIG_KEY: stage,
+                                               "learner": _learner_section(stage)})
   return directory
+
+
+def _learner_section(stage, adaptation_env_steps=None):
+  """checkpoint.json's "learner" block as the learner writes it at the end of a stage (its
+  adaptation phase run: the deployable actor may be evaluated)."""
+  budget = stage["rma"]["adaptation_env_steps"]
+  steps = budget if adaptation_env_steps is None else adaptation_env_steps
+  return {"iteration": 0, "ppo_env_steps": 0, "adaptation_env_steps": steps,
+          "phase": "done" if steps >= budget else "adaptation", "finished_early": False,
+          "num_envs": stage["ppo"]["num_envs"], "devices": 1, "initial_action_std": 1.0,
+          "ppo_budget": 0, "adaptation_budget": budget}
 
 
 def test_quick_evaluation_is_reproducible(fresh_checkpoint, tmp_path):
@@ -363,12 +388,81 @@ def test_quick_evaluation_is_reproducible(fresh_checkpoint, tmp_path):
   assert not (tmp_path / "c").exists()
 
 
+def test_keystate_evaluation_reports_every_start_state(fresh_checkpoint, tmp_path):
+  # Same stage, backend and batch as the quick evaluation above: the compiled rollout is reused.
+  stage = _full_stage()
+  stage["success"].update(height_tolerance=0.5, upright_tolerance=2.0, dof_tolerance=10.0,
+                          hold_s=0.1)
+  result = runner.evaluate({"checkpoint": str(fresh_checkpoint), "stage": stage,
+                            "protocol": "keystate", "trials": 2, "backend": "native", "seed": 1,
+                            "batch_size": 8, "out_dir": str(tmp_path / "k")})
+  assert result["status"] == "completed"
+  doc = json.loads((tmp_path / "k" / "eval.json").read_text())
+  assert doc["protocol"] == "keystate" and doc["trials"] == 2
+  cells = doc["cells"]
+  assert [c["scenario"] for c in cells] == list(protocols.KEYSTATE_CELLS)
+  for c in cells:
+    assert c["experiment"] == "keystate" and c["setting"] == c["scenario"]
+    assert c["trials"] == 2 and c["success_rate"] == c["successes"] / 2
+    assert c["ci95"] == pytest.approx(list(stats.wilson_interval(c["successes"], 2)))
+    assert c["paper_success_rate"] is None and c["paper_recovery_time"] is None
+    assert c["condition"] == cond_lib.Condition(scenario=c["scenario"]).to_dict()
+  md = result["markdown"]
+  assert "## Start states of the key-state curriculum (nominal conditions)" in md
+  assert "| Start state | Success rate | 95 % Wilson interval | Successes | Recovery time (s) |" \
+      in md
+  assert "| `stand` | " in md and "| `ksi_supine_3` | " in md and "| `prone` | " in md
+  assert "the paper's (Webots" not in md  # no paper numbers in this protocol
+  rows = (tmp_path / "k" / "eval.csv").read_text().splitlines()
+  assert len(rows) == 1 + 9 and rows[1].startswith("keystate,stand,stand,,2,")
+
+
+def test_an_untrained_adaptation_module_is_refused(fresh_checkpoint, tmp_path):
+  """act, eval (and rollout, which loads the policy the same way) and export share one rule."""
+  from jax_env import export as export_lib
+  from jax_env import facade
+  from jax_env.evaluation import policy as policy_lib
+
+  stage = _full_stage()
+  meta = json.loads((fresh_checkpoint / ckpt_lib.META_FILE).read_text())
+  assert meta["network"]["rma"] is True
+  untrained = tmp_path / "untrained"
+  without = tmp_path / "without_learner"
+  for d, learner in ((untrained, _learner_section(stage, 0)), (without, None)):
+    d.mkdir()
+    for f in (ckpt_lib.META_FILE, ckpt_lib.PARAMS_FILE):
+      (d / f).write_bytes((fresh_checkpoint / f).read_bytes())
+    m = {k: v for k, v in meta.items() if k != "learner"}
+    if learner is not None:
+      m["learner"] = learner
+    (d / ckpt_lib.META_FILE).write_text(json.dumps(m))
+  for d in (untrained, without):
+    message = (f"{d}: its RMA adaptation module was never trained (stage full ended before its "
+               "adaptation phase); train with rma.adaptation_env_steps > 0 or evaluate a later "
+               "checkpoint")
+    for call in (lambda: facade.act(str(d), [[0.0] * len(meta["obs_names"])]),
+                 lambda: policy_lib.load(d),
+                 lambda: runner.evaluate({"checkpoint": str(d), "protocol": "keystate",
+                                          "backend": "native", "out_dir": str(tmp_path / "o")}),
+                 lambda: facade.export_onnx({"checkpoint": str(d),
+                                             "out": str(tmp_path / "x.onnx")})):
+      with pytest.raises(ckpt_lib.CheckpointError) as e:
+        call()
+      assert str(e.value) == message and "\n" not in str(e.value)
+    with pytest.raises(ckpt_lib.CheckpointError, match="was never trained"):
+      export_lib.actor_spec(d)
+  assert not (tmp_path / "o").exists() and not (tmp_path / "x.onnx").exists()
+  # Without RMA there is no adaptation module to train: nothing to refuse.
+  policy_lib.check_adaptation_trained({"network": {"rma": False}, "stage": "planar"}, untrained)
+  policy_lib.check_adaptation_trained(meta, fresh_checkpoint)
+
+
 def test_evaluate_rejects_bad_requests(tmp_path):
   base = {"checkpoint": str(tmp_path), "protocol": "quick", "backend": "native",
           "out_dir": str(tmp_path / "out")}
   with pytest.raises(ValueError, match="unknown request key"):
     runner.evaluate({**base, "bogus": 1})
-  with pytest.raises(ValueError, match="unknown protocol 'full'; valid: paper, quick"):
+  with pytest.raises(ValueError, match="unknown protocol 'full'; valid: paper, quick, keystate"):
     runner.evaluate({**base, "protocol": "full"})
   with pytest.raises(ValueError, match="unknown backend 'gpu'"):
     runner.evaluate({**base, "backend": "gpu"})

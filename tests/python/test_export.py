@@ -36,8 +36,9 @@ def _stage(kind, *, rma, history_len, hidden, activation, mapping):
   return s
 
 
-def _checkpoint(path, stage, *, seed, with_stage_config=True):
-  """A checkpoint of `stage`'s layout with non-trivial weights and statistics."""
+def _checkpoint(path, stage, *, seed, with_stage_config=True, adaptation_env_steps=4096):
+  """A checkpoint of `stage`'s layout with non-trivial weights and statistics, whose learner
+  section records `adaptation_env_steps` of RMA adaptation (None: no learner section)."""
   obs_names, priv_names, act_names = config_lib.feature_names(stage)
   p, r = stage["ppo"], stage["rma"]
   config = nets_lib.NetworkConfig(
@@ -62,7 +63,10 @@ def _checkpoint(path, stage, *, seed, with_stage_config=True):
   normalizer = nets_lib.update_normalizer(state.normalizer, jnp.asarray(obs, jnp.float32),
                                           jnp.asarray(priv, jnp.float32))
   state = state.replace(params=params, normalizer=normalizer)
-  extra = {ckpt_lib.STAGE_CONFIG_KEY: stage} if with_stage_config else None
+  extra = {ckpt_lib.STAGE_CONFIG_KEY: stage} if with_stage_config else {}
+  if adaptation_env_steps is not None:
+    extra["learner"] = {"phase": "done", "ppo_env_steps": 4096,
+                        "adaptation_env_steps": adaptation_env_steps}
   return str(ckpt_lib.save(path, state=state, config=config, stage=stage["name"],
                            env_steps=4096, iteration=2, seed=seed, key=jax.random.PRNGKey(3),
                            obs_names=obs_names, privileged_names=priv_names,
@@ -222,6 +226,21 @@ def test_refusals_write_nothing(plain_checkpoint, rma_checkpoint, tmp_path):
     facade.export_onnx({"checkpoint": ckpt, "out": str(out), "stage": full})
   with pytest.raises(ckpt_lib.CheckpointError, match="no such checkpoint directory"):
     facade.export_onnx({"checkpoint": str(tmp_path / "nope"), "out": str(out)})
+  assert list(tmp_path.iterdir()) == [], "nothing written, no temporary files left"
+
+  # An RMA checkpoint whose adaptation module was never trained (a checkpoint of the PPO phase,
+  # or one without the learner's section) is refused before anything is built.
+  stage = _stage("full", rma=True, history_len=4, hidden=(16,), activation="elu",
+                 mapping="current")
+  for steps, name in ((0, "ppo_phase"), (None, "no_learner")):
+    untrained = _checkpoint(tmp_path.parent / f"{tmp_path.name}_{name}", stage, seed=4,
+                            adaptation_env_steps=steps)
+    with pytest.raises(ckpt_lib.CheckpointError) as e:
+      facade.export_onnx({"checkpoint": untrained, "out": str(out)})
+    assert str(e.value) == (
+        f"{pathlib.Path(untrained).resolve()}: its RMA adaptation module was never trained "
+        "(stage full ended before its adaptation phase); train with "
+        "rma.adaptation_env_steps > 0 or evaluate a later checkpoint")
   assert list(tmp_path.iterdir()) == [], "nothing written, no temporary files left"
 
   # An existing file is replaced atomically (no temporary sibling left behind).

@@ -334,7 +334,8 @@ def test_act_matches_policy_mean_without_rma(tmp_path):
 def test_act_uses_adaptation_module_and_history(tmp_path):
   config = _config(rma=True)
   nets, state = _trained_like_state(config, seed=5)
-  d = str(_save(tmp_path / "ck", state, config))
+  # As after the stage's adaptation phase: act refuses an untrained adaptation module.
+  d = str(_save(tmp_path / "ck", state, config, learner={"adaptation_env_steps": 64}))
   rng = np.random.default_rng(2)
   obs = rng.normal(size=(3, config.obs_size)).astype(np.float32)
   hist = rng.normal(size=(3, config.history_len, config.obs_size)).astype(np.float32)

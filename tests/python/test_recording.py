@@ -11,6 +11,7 @@ import copy
 import json
 import math
 import types
+from pathlib import Path
 
 import jax
 import mujoco
@@ -53,7 +54,9 @@ def _fresh_checkpoint(path, stage_dict):
   return ckpt_lib.save(path, state=state, config=net_cfg, stage=stage.name, env_steps=0,
                        iteration=0, seed=3, key=key, obs_names=obs, privileged_names=priv,
                        action_names=act, action=learner.action,
-                       extra={ckpt_lib.STAGE_CONFIG_KEY: stage_dict})
+                       extra={ckpt_lib.STAGE_CONFIG_KEY: stage_dict,
+                              # as after the stage's RMA adaptation phase (else it is refused)
+                              "learner": {"phase": "done", "adaptation_env_steps": 64}})
 
 
 @pytest.fixture(scope="module")
@@ -175,6 +178,18 @@ def test_bad_requests_name_the_value_and_the_valid_ones(checkpoint):
     facade.rollout({**base, "duration_s": 0.03})
   with pytest.raises(ValueError, match=r"longer than the stage's settle_s \(0.04 s"):
     facade.rollout({**base, "duration_s": 0.04})
+
+
+def test_an_untrained_adaptation_module_is_refused(checkpoint, tmp_path):
+  meta = ckpt_lib.read_meta(checkpoint)
+  meta["learner"]["adaptation_env_steps"] = 0  # a checkpoint of the stage's PPO phase
+  d = tmp_path / "ppo_phase"
+  d.mkdir()
+  (d / ckpt_lib.PARAMS_FILE).write_bytes((Path(checkpoint) / ckpt_lib.PARAMS_FILE).read_bytes())
+  (d / ckpt_lib.META_FILE).write_text(json.dumps(meta))
+  with pytest.raises(ckpt_lib.CheckpointError, match=r"its RMA adaptation module was never "
+                     r"trained \(stage planar ended before its adaptation phase\)"):
+    facade.rollout({"checkpoint": str(d), "backend": "native", "scenario": "prone"})
 
 
 @pytest.fixture(scope="module")

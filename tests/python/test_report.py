@@ -306,3 +306,77 @@ def test_a_directory_without_manifest_is_refused(tmp_path):
   with pytest.raises(FileNotFoundError, match="is not a run directory \\(no manifest.json\\)"):
     report_lib.report({"run": str(tmp_path), "out_dir": str(tmp_path / "report")})
   assert not (tmp_path / "report").exists()
+
+
+MONITORED = ("stand", "ksi_prone_1", "ksi_supine_1", "supine", "prone")
+
+
+def _monitor(iteration, stage):
+  """A deterministic monitor whose start states are learned one after the other (the step-like
+  rises of key-state initialization); stage full adds a start state planar never saw."""
+  rates = {name: (1.0 if iteration >= 6 * k else 0.0) for k, name in enumerate(MONITORED)}
+  if stage == "full":
+    rates["lateral"] = 0.25
+  rates["prone"] = None if iteration == 5 else rates["prone"]  # a value the check could not get
+  finite = [v for v in rates.values() if v is not None]
+  return {"stand_rate": rates, "recovery_time": {n: None for n in rates},
+          "max_height": {n: 0.7 for n in rates}, "mean_stand_rate": sum(finite) / len(finite)}
+
+
+def test_monitor_stand_rate_per_start_state_is_plotted_across_stages(tmp_path):
+  run = write_run(tmp_path, stages=(("planar", "completed", 30, 2), ("full", "running", 10, 0)))
+  lines = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
+  for line in lines:
+    if line["iteration"] % 5 == 0 and line["phase"] == "ppo":
+      line["monitor"] = _monitor(line["iteration"], line["stage"])
+  (run / "metrics.jsonl").write_text("".join(json.dumps(l) + "\n" for l in lines))
+  records, _ = report_lib.read_metrics(run / "metrics.jsonl")
+  spans = report_lib.stage_spans(report_lib.read_manifest(run), records)
+  assert report_lib.monitor_scenarios(spans) == [*MONITORED, "lateral"]
+  # 6 planar + 2 full monitors: every start state's points but the two nulls, and the means.
+  drawn = report_lib.plot_monitor(spans, tmp_path / "m.png")
+  assert drawn == 6 * 5 + 2 * 6 - 2 + 8
+
+  result = report_lib.report({"run": str(run), "out_dir": str(run / "report")})
+  monitor = run / "report" / "monitor_stand_rate.png"
+  assert str(monitor) in result["plots"]
+  assert png_size(monitor) == expected(report_lib.MONITOR_SIZE)
+  assert matplotlib.image.imread(monitor)[..., :3].std() > 0.01
+  md = Path(result["markdown"]).read_text()
+  assert "![stand rate per start state](monitor_stand_rate.png)" in md
+  assert "| stage | env steps | mean | `stand` | `ksi_prone_1` | `ksi_supine_1` | `supine` | " \
+         "`prone` | `lateral` |" in md
+  # planar's last monitor (iteration 30): every start state learned; full's (iteration 10).
+  assert f"| planar | {30 * STEPS_PER_ITER:,} | 100% | 100% | 100% | 100% | 100% | 100% | — |" \
+      in md
+  assert f"| full | {10 * STEPS_PER_ITER:,} | 38% | 100% | 100% | 0% | 0% | 0% | 25% |" in md
+  assert "this plot is skipped" not in md
+
+
+def test_without_a_monitor_the_plot_is_skipped_with_a_note(full_report):
+  run, result = full_report
+  assert not (run / "report" / "monitor_stand_rate.png").exists()
+  md = Path(result["markdown"]).read_text()
+  assert "No iteration of metrics.jsonl carries a `monitor`" in md
+  assert "this plot is skipped" in md
+
+
+def test_keystate_evaluation_is_plotted_per_start_state(tmp_path):
+  states = ("stand", "ksi_prone_1", "ksi_prone_2", "ksi_prone_3", "ksi_supine_1",
+            "ksi_supine_2", "ksi_supine_3", "supine", "prone")
+  cells = [cell("keystate", s, s, None, 8, 8 - i % 9, None) for i, s in enumerate(states)]
+  data = {**eval_json("native", trials=8), "protocol": "keystate", "cells": cells}
+  run = write_run(tmp_path, stages=(("planar", "completed", 3, 1),),
+                  evals=[("keystate-native", data)])
+  evals = [report_lib.Evaluation(run / "eval" / "keystate-native", data)]
+  xs, series, mode = report_lib.experiment_layout(evals, "keystate")
+  assert (xs, mode, [s.label for s in series]) == (list(states), "scenario", ["native"])
+  result = report_lib.report({"run": str(run), "out_dir": str(run / "report")})
+  plot = run / "report" / "eval_keystate_keystate.png"
+  assert str(plot) in result["plots"]
+  assert png_size(plot) == expected(report_lib.EVAL_SIZE)
+  md = Path(result["markdown"]).read_text()
+  assert "### Protocol keystate" in md
+  assert "#### Start states of the key-state curriculum" in md
+  assert "| | stand | ksi_prone_1 |" in md
+  assert "| native | 100% [68–100] | 88% [53–98] |" in md  # no paper column

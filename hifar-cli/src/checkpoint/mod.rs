@@ -42,6 +42,10 @@ pub enum CheckpointError {
     Incompatible { source_dir: PathBuf, stage: String, message: String },
     #[error("{0} already exists; expansion never overwrites a directory")]
     Exists(PathBuf),
+    #[error(
+        "{dir}: its RMA adaptation module was never trained ({why}); train with rma.adaptation_env_steps > 0 or evaluate a later checkpoint"
+    )]
+    UntrainedAdaptation { dir: PathBuf, why: String },
 }
 
 fn io_error(path: &Path) -> impl FnOnce(io::Error) -> CheckpointError + '_ {
@@ -130,6 +134,29 @@ pub fn parse_meta(path: &Path, text: &str) -> Result<CheckpointMeta, CheckpointE
     meta.check().map_err(|message| CheckpointError::Invalid { path: path.to_path_buf(), message })?;
     Ok(meta)
 }
+
+/// Refuses a checkpoint whose deployable actor would act with an RMA adaptation module that
+/// never trained: `network.rma` is true but the `"learner"` section of `checkpoint.json` is
+/// missing or counts `adaptation_env_steps == 0` (a stage that ended, or was stopped, before
+/// its adaptation phase). `act`, `eval`, `rollout` and `export` call this before Python starts.
+pub fn check_deployable(dir: &Path, meta: &CheckpointMeta) -> Result<(), CheckpointError> {
+    if !meta.network.rma {
+        return Ok(());
+    }
+    let learner = meta.extra.get(LEARNER_KEY);
+    let steps = learner.and_then(|l| l.get("adaptation_env_steps")).and_then(serde_json::Value::as_u64);
+    let why = match (learner, steps) {
+        (_, Some(steps)) if steps > 0 => return Ok(()),
+        (_, Some(_)) => format!("stage {} ended before its adaptation phase", meta.stage),
+        (None, None) => format!("{META_FILE} has no \"{LEARNER_KEY}\" section recording an adaptation phase"),
+        (Some(_), None) => format!("the \"{LEARNER_KEY}\" section of {META_FILE} records no adaptation_env_steps"),
+    };
+    Err(CheckpointError::UntrainedAdaptation { dir: dir.to_path_buf(), why })
+}
+
+/// `checkpoint.json` key of the learner's counters and budgets (phase, `ppo_env_steps`,
+/// `adaptation_env_steps`, …), written by `jax_env/learner/train.py`.
+pub const LEARNER_KEY: &str = "learner";
 
 /// Reads a checkpoint: metadata and tensors, checking that every tensor has an annotation,
 /// every annotation a tensor, and that their shapes agree.

@@ -379,3 +379,38 @@ fn meta_round_trips_with_extra_keys() {
     assert_eq!(back.tensors["policy/log_std"].fill, Some(Fill::Named("log_initial_action_std".into())));
     assert_eq!(back.tensors["policy/hidden_0/kernel"].axes[0], Some(vec![Segment::Features(FeatureKind::Obs), Segment::Fixed(LATENT)]));
 }
+
+#[test]
+fn an_untrained_adaptation_module_is_not_deployable() {
+    let dir = Path::new("runs/r/stages/planar/checkpoints/000000004096");
+    let mut meta = synthetic(dir).meta;
+    assert!(meta.network.rma);
+    let refused = |meta: &CheckpointMeta| check_deployable(dir, meta).map(|_| ()).map_err(|e| e.to_string());
+
+    // No "learner" section (a hand-made checkpoint).
+    let err = refused(&meta).unwrap_err();
+    assert_eq!(
+        err,
+        "runs/r/stages/planar/checkpoints/000000004096: its RMA adaptation module was never trained \
+         (checkpoint.json has no \"learner\" section recording an adaptation phase); \
+         train with rma.adaptation_env_steps > 0 or evaluate a later checkpoint"
+    );
+    // A stage stopped (or budgeted) before its adaptation phase.
+    meta.extra.insert(
+        LEARNER_KEY.into(),
+        json!({"iteration": 8, "ppo_env_steps": 4096, "adaptation_env_steps": 0, "phase": "done", "adaptation_budget": 0}),
+    );
+    let err = refused(&meta).unwrap_err();
+    assert!(err.contains("was never trained (stage planar ended before its adaptation phase); train with"), "{err}");
+    assert_eq!(err.lines().count(), 1);
+    // A learner section without the counter.
+    meta.extra.insert(LEARNER_KEY.into(), json!({"phase": "ppo"}));
+    assert!(refused(&meta).unwrap_err().contains("records no adaptation_env_steps"));
+    // Adapted: deployable.
+    meta.extra.insert(LEARNER_KEY.into(), json!({"phase": "done", "adaptation_env_steps": 64}));
+    assert_eq!(refused(&meta), Ok(()));
+    // Without RMA there is no adaptation module to train.
+    meta.extra.remove(LEARNER_KEY);
+    meta.network.rma = false;
+    assert_eq!(refused(&meta), Ok(()));
+}

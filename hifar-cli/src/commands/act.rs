@@ -15,6 +15,7 @@ use crate::{bad_input, checkpoint, paths};
 
 pub fn run(args: &ActArgs) -> Result<()> {
     let meta = checkpoint::read_meta(&args.checkpoint)?;
+    checkpoint::check_deployable(&args.checkpoint, &meta)?;
     let n_obs = meta.obs_names.len();
     let input = read_input(&args.input)?;
     let file = args.input.display();

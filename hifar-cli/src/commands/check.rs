@@ -2,7 +2,8 @@
 //!
 //! The Rust side (`curriculum::load`) checks syntax, keys, types and ranges; the Python side
 //! (`facade.check_stage`) checks the names it owns (joints, scenarios, keyframes, reward
-//! terms, randomization parameters). Python answers with key paths inside a stage; they are
+//! terms, randomization parameters) and the ranges and meaning of the optional tables Rust
+//! types only for their keys (`reward_shaping`, `termination`, `monitor`). Python answers with key paths inside a stage; they are
 //! mapped back to `FILE:LINE:COL` here, so both kinds of error read the same.
 
 use std::path::Path;

@@ -8,7 +8,7 @@ use serde_json::Value;
 
 use crate::bad_input;
 use crate::cli::{RunsArgs, RunsCommand};
-use crate::metrics::read_jsonl;
+use crate::metrics::{monitor_mean_stand_rate, read_jsonl};
 use crate::run_dir::{Manifest, METRICS};
 
 pub fn run(args: &RunsArgs) -> Result<()> {
@@ -18,12 +18,19 @@ pub fn run(args: &RunsArgs) -> Result<()> {
     }
 }
 
-/// Per-stage figures from `metrics.jsonl`: newest env steps and best stand rate.
+/// Per-stage figures from `metrics.jsonl`: newest env steps, best stand rate of the training
+/// episodes (PPO phase), and best mean stand rate of the deterministic monitor (when the
+/// curriculum runs one).
 #[derive(Debug, Default, Clone, Copy)]
 struct StageMetrics {
     env_steps: u64,
     best_stand_rate: Option<f64>,
+    best_det_stand_rate: Option<f64>,
     iterations: u64,
+}
+
+fn max_option(best: Option<f64>, value: f64) -> Option<f64> {
+    Some(best.map_or(value, |best| best.max(value)))
 }
 
 fn stage_metrics(run: &Path) -> Result<BTreeMap<String, StageMetrics>> {
@@ -37,7 +44,11 @@ fn stage_metrics(run: &Path) -> Result<BTreeMap<String, StageMetrics>> {
         }
         let is_ppo = record.get("phase").and_then(Value::as_str).is_none_or(|p| p == "ppo");
         if let (true, Some(rate)) = (is_ppo, record.get("stand_rate").and_then(Value::as_f64)) {
-            entry.best_stand_rate = Some(entry.best_stand_rate.map_or(rate, |best: f64| best.max(rate)));
+            entry.best_stand_rate = max_option(entry.best_stand_rate, rate);
+        }
+        // The monitor judges the deterministic policy, whichever phase trains it.
+        if let Some(rate) = monitor_mean_stand_rate(&record) {
+            entry.best_det_stand_rate = max_option(entry.best_det_stand_rate, rate);
         }
     }
     Ok(out)
@@ -68,15 +79,15 @@ fn list(root: &Path) -> Result<()> {
             .iter()
             .map(|s| s.env_steps.or_else(|| metrics.get(&s.name).map(|m| m.env_steps)).unwrap_or(0))
             .sum();
-        let best = metrics.values().filter_map(|m| m.best_stand_rate).fold(None, |acc: Option<f64>, r| {
-            Some(acc.map_or(r, |a| a.max(r)))
-        });
+        let best = metrics.values().filter_map(|m| m.best_stand_rate).fold(None, max_option);
+        let best_det = metrics.values().filter_map(|m| m.best_det_stand_rate).fold(None, max_option);
         rows.push([
             name,
             manifest.status.to_string(),
             current,
             group_digits(env_steps),
-            best.map(|b| format!("{b:.3}")).unwrap_or_else(|| "-".into()),
+            rate(best),
+            rate(best_det),
             short_time(&manifest.started_at),
         ]);
     }
@@ -84,7 +95,7 @@ fn list(root: &Path) -> Result<()> {
         println!("no runs in {}", root.display());
         return Ok(());
     }
-    print_table(&["RUN", "STATUS", "STAGE", "ENV STEPS", "BEST STAND", "STARTED"], &rows);
+    print_table(&["RUN", "STATUS", "STAGE", "ENV STEPS", "BEST STAND", "BEST DET", "STARTED"], &rows);
     Ok(())
 }
 
@@ -129,7 +140,7 @@ fn show(run: &Path) -> Result<()> {
         println!("versions      {}", line.join(", "));
     }
     println!();
-    let rows: Vec<[String; 6]> = manifest
+    let rows: Vec<[String; 7]> = manifest
         .stages
         .iter()
         .map(|stage| {
@@ -140,12 +151,13 @@ fn show(run: &Path) -> Result<()> {
                 stage.status.to_string(),
                 stage.seed.to_string(),
                 group_digits(stage.env_steps.unwrap_or(m.env_steps)),
-                best.map(|b| format!("{b:.3}")).unwrap_or_else(|| "-".into()),
+                rate(best),
+                rate(m.best_det_stand_rate),
                 stage.final_checkpoint.clone().unwrap_or_else(|| "-".into()),
             ]
         })
         .collect();
-    print_table(&["STAGE", "STATUS", "SEED", "ENV STEPS", "BEST STAND", "FINAL CHECKPOINT"], &rows);
+    print_table(&["STAGE", "STATUS", "SEED", "ENV STEPS", "BEST STAND", "BEST DET", "FINAL CHECKPOINT"], &rows);
     Ok(())
 }
 
@@ -164,6 +176,11 @@ fn print_table<const N: usize>(header: &[&str; N], rows: &[[String; N]]) {
     for row in rows {
         line(row.iter().map(String::as_str).collect());
     }
+}
+
+/// A stand rate with three decimals, "-" when unknown.
+fn rate(rate: Option<f64>) -> String {
+    rate.map(|r| format!("{r:.3}")).unwrap_or_else(|| "-".into())
 }
 
 /// "2025-01-02T03:04:05.123Z" -> "2025-01-02 03:04:05".

@@ -1,5 +1,6 @@
-//! The policy a command acts on: a checkpoint directory, or a run directory standing for its
-//! newest finished stage's final checkpoint.
+//! The policy a command acts on: a checkpoint directory, or a run directory standing for the
+//! final checkpoint of its last completed stage. Either way the checkpoint must be deployable
+//! ([`checkpoint::check_deployable`]: no RMA adaptation module that never trained).
 
 use std::path::{Path, PathBuf};
 
@@ -7,7 +8,7 @@ use anyhow::Result;
 use serde_json::Value;
 
 use crate::checkpoint::{self, CheckpointMeta};
-use crate::run_dir::{Manifest, MANIFEST};
+use crate::run_dir::{Manifest, Status, MANIFEST};
 use crate::{bad_input, paths};
 
 /// A resolved `CKPT|RUN` argument.
@@ -35,22 +36,36 @@ pub fn resolve(target: &Path) -> Result<PolicyTarget> {
     if target.join(MANIFEST).is_file() {
         let run = paths::absolute(target.to_path_buf());
         let manifest = Manifest::read(&run)?;
-        let Some(relative) = manifest.stages.iter().rev().find_map(|s| s.final_checkpoint.clone()) else {
+        let Some(relative) = last_final_checkpoint(&manifest) else {
             return Err(bad_input!("{shown}: the run has no finished stage yet (no final checkpoint in {MANIFEST})"));
         };
         let checkpoint = run.join(relative);
         let meta = checkpoint::read_meta(&checkpoint)?;
+        checkpoint::check_deployable(&checkpoint, &meta)?;
         let stage = Some(stage_table(&manifest, &run, &meta.stage)?);
         return Ok(PolicyTarget { checkpoint, meta, run: Some(run), stage });
     }
     if target.join("checkpoint.json").is_file() {
         let meta = checkpoint::read_meta(target)?;
+        checkpoint::check_deployable(target, &meta)?;
         return Ok(PolicyTarget { checkpoint: paths::absolute(target.to_path_buf()), meta, run: None, stage: None });
     }
     if !target.exists() {
         return Err(bad_input!("{shown}: no such checkpoint or run directory"));
     }
     Err(bad_input!("{shown}: neither a run directory ({MANIFEST}) nor a checkpoint directory (checkpoint.json)"))
+}
+
+/// The final checkpoint (relative to the run) of the last stage that completed (`completed`,
+/// or `threshold_missed`: it used its budget). A stage that is running, interrupted or failed
+/// has no final checkpoint of its own, whatever an older session left in the manifest.
+fn last_final_checkpoint(manifest: &Manifest) -> Option<String> {
+    manifest
+        .stages
+        .iter()
+        .rev()
+        .filter(|s| matches!(s.status, Status::Completed | Status::ThresholdMissed))
+        .find_map(|s| s.final_checkpoint.clone())
 }
 
 /// The stage table named `stage` in a run's resolved curriculum.

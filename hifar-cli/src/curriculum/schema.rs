@@ -5,6 +5,12 @@
 //! names, …) are enums, so a wrong name is reported by the deserializer with the valid ones.
 //! Serialization gives back exactly the keys of the file (optional keys that were absent stay
 //! absent), which is the stage table Python receives.
+//!
+//! The optional tables `[stage.reward_shaping]`, `[stage.termination]`, `[stage.monitor]` (and
+//! the optional keys `reward_params.waist_height_target`, `reward_params.dof_pos_ref_band`,
+//! `ppo.max_action_std`) are typed here only for their keys and types; their ranges and
+//! meaning are checked by Python (`jax_env/config.py`, `check_stage`), whose key paths
+//! `hifar check` and `hifar train` map back to `FILE:LINE:COL`.
 
 use std::collections::BTreeMap;
 
@@ -68,6 +74,8 @@ names!(
         Sitting = "sitting",
         CrossedLegs = "crossed_legs",
         RandomDrop = "random_drop",
+        Stand = "stand",
+        Squat = "squat",
     }
 );
 names!(
@@ -87,7 +95,14 @@ names!(
         TorqueFatigue = "torque_fatigue",
         Power = "power",
         HipRoll = "hip_roll",
+        TrunkHeight = "trunk_height",
+        WaistHeight = "waist_height",
+        Upright = "upright",
     }
+);
+names!(
+    /// What a penalty schedule's `points` are indexed by.
+    ScheduleBy { EnvSteps = "env_steps", StandRate = "stand_rate" }
 );
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -124,7 +139,11 @@ pub struct StageTable {
     pub terrain: Terrain,
     pub rewards: BTreeMap<RewardTerm, f64>,
     pub reward_params: RewardParams,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reward_shaping: Option<RewardShaping>,
     pub success: Success,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub termination: Option<Termination>,
     pub domain_randomization: DomainRandomization,
     pub delay: Delay,
     pub push: Push,
@@ -132,6 +151,8 @@ pub struct StageTable {
     pub rma: Rma,
     pub mirror: Mirror,
     pub advance: Advance,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub monitor: Option<Monitor>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -194,6 +215,74 @@ pub struct RewardParams {
     pub base_height_target: f64,
     pub base_height_sigma: f64,
     pub hip_roll_ref: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub waist_height_target: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dof_pos_ref_band: Option<f64>,
+}
+
+/// `[stage.reward_shaping]`: how the weighted reward terms are combined (jax_env/config.py
+/// owns the semantics and the range checks; every key is optional).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RewardShaping {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scale_by_ctrl_dt: Option<bool>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clip_at_zero: Option<bool>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub penalty_schedule: Option<PenaltySchedule>,
+}
+
+/// `penalty_schedule = { by = "env_steps" | "stand_rate", points = [[x, scale], ...] }`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PenaltySchedule {
+    pub by: ScheduleBy,
+    pub points: Vec<SchedulePoint>,
+}
+
+/// `[x, scale]`: exactly two numbers.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[serde(transparent)]
+pub struct SchedulePoint(pub [f64; 2]);
+
+impl<'de> Deserialize<'de> for SchedulePoint {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        let values = Vec::<f64>::deserialize(deserializer)?;
+        match values[..] {
+            [x, scale] => Ok(SchedulePoint([x, scale])),
+            _ => Err(serde::de::Error::invalid_length(values.len(), &"an array of two numbers [x, scale]")),
+        }
+    }
+}
+
+/// `[stage.termination]`: early-termination conditions (jax_env/config.py owns the semantics
+/// and the range checks; every key is optional, 0 switches a condition off).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Termination {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub low_height: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub low_height_s: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub upside_down: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub side_roll: Option<f64>,
+}
+
+/// `[stage.monitor]`: the deterministic-policy monitor run during training (jax_env/config.py
+/// owns the semantics and the range checks; every key is optional).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Monitor {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub every: Option<u32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub episodes: Option<u32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scenarios: Option<Vec<Scenario>>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -322,6 +411,8 @@ pub struct Ppo {
     pub activation: Activation,
     pub initial_action_std: f64,
     pub checkpoint_every: u32,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_action_std: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]

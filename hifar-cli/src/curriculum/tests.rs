@@ -217,3 +217,84 @@ fn shipped_curricula_are_valid() {
         assert_eq!(full.domain_randomization.params().len(), 12, "{name}: stage 2 uses the whole DR table");
     }
 }
+
+/// tiny.toml with every optional key of the issue-10 additions set in its first stage.
+fn tiny_with_new_keys() -> String {
+    let tiny = tiny_text();
+    let second = tiny.find("[[stage]]\nname = \"full\"").unwrap();
+    let (first, rest) = tiny.split_at(second);
+    let first = first
+        .replacen("prone = 0.2\n", "prone = 0.1\nstand = 0.05\nsquat = 0.05\n", 1)
+        .replacen("action_rate = -0.001\n", "action_rate = -0.001\ntrunk_height = 1.0\nwaist_height = 0.5\nupright = 0.2\n", 1)
+        .replacen("hip_roll_ref = 0.0\n", "hip_roll_ref = 0.0\nwaist_height_target = 0.55\ndof_pos_ref_band = 0.1\n", 1)
+        .replacen("checkpoint_every = 2\n", "checkpoint_every = 2\nmax_action_std = 1.5\n", 1);
+    format!(
+        "{first}[stage.reward_shaping]\nscale_by_ctrl_dt = true\nclip_at_zero = false\n\
+         penalty_schedule = {{ by = \"env_steps\", points = [[0, 0.1], [1_000, 1.0]] }}\n\n\
+         [stage.termination]\nlow_height = 0.2\nlow_height_s = 1.0\nupside_down = 0.5\nside_roll = 0.0\n\n\
+         [stage.monitor]\nevery = 10\nepisodes = 4\nscenarios = [\"supine\", \"stand\", \"squat\"]\n\n{rest}"
+    )
+}
+
+#[test]
+fn new_optional_keys_parse_and_reach_python_as_written() {
+    let text = tiny_with_new_keys();
+    let c = parse_text(&text).unwrap_or_else(|e| panic!("{e}"));
+    let stage = c.stages()[0].to_json();
+    assert_eq!(stage["scenarios"]["stand"], json!(0.05));
+    assert_eq!(stage["scenarios"]["squat"], json!(0.05));
+    for (term, weight) in [("trunk_height", 1.0), ("waist_height", 0.5), ("upright", 0.2)] {
+        assert_eq!(stage["rewards"][term], json!(weight), "{term}");
+    }
+    assert_eq!(stage["reward_params"]["waist_height_target"], json!(0.55));
+    assert_eq!(stage["reward_params"]["dof_pos_ref_band"], json!(0.1));
+    assert_eq!(stage["ppo"]["max_action_std"], json!(1.5));
+    assert_eq!(
+        stage["reward_shaping"],
+        json!({"scale_by_ctrl_dt": true, "clip_at_zero": false,
+               "penalty_schedule": {"by": "env_steps", "points": [[0.0, 0.1], [1000.0, 1.0]]}})
+    );
+    assert_eq!(stage["termination"], json!({"low_height": 0.2, "low_height_s": 1.0, "upside_down": 0.5, "side_roll": 0.0}));
+    assert_eq!(stage["monitor"], json!({"every": 10, "episodes": 4, "scenarios": ["supine", "stand", "squat"]}));
+    // A JSON round trip gives the same stage.
+    let back: Stage = serde_json::from_value(stage.clone()).unwrap();
+    assert_eq!(back.to_json(), stage);
+
+    // Partial tables give back only their keys; the second stage sets none of them.
+    let text = text.replacen("scale_by_ctrl_dt = true\nclip_at_zero = false\n", "", 1).replacen("episodes = 4\n", "", 1);
+    let c = parse_text(&text).unwrap_or_else(|e| panic!("{e}"));
+    let stage = c.stages()[0].to_json();
+    assert_eq!(stage["reward_shaping"].as_object().unwrap().keys().collect::<Vec<_>>(), ["penalty_schedule"]);
+    assert_eq!(stage["monitor"].as_object().unwrap().keys().collect::<Vec<_>>(), ["every", "scenarios"]);
+    let full = c.stages()[1].to_json();
+    for key in ["reward_shaping", "termination", "monitor"] {
+        assert!(full.get(key).is_none(), "{key} stays absent");
+    }
+    assert!(full["ppo"].get("max_action_std").is_none());
+    assert!(full["reward_params"].get("waist_height_target").is_none());
+    assert!(full["reward_params"].get("dof_pos_ref_band").is_none());
+}
+
+#[test]
+fn mistakes_in_the_new_tables_have_a_position() {
+    let text = tiny_with_new_keys();
+    let cases: &[(&str, &str, &str, &str)] = &[
+        ("low_height_s = 1.0", "low_heigth_s = 1.0", "low_heigth_s", "unknown key `low_heigth_s` in [stage.termination]; valid keys: `low_height`, `low_height_s`, `upside_down`, `side_roll`"),
+        ("clip_at_zero = false", "clip_at_zero = 0", "clip_at_zero", "reward_shaping.clip_at_zero: invalid type: integer `0`, expected a boolean"),
+        ("episodes = 4", "episodes = -4", "episodes", "monitor.episodes: invalid value: integer `-4`, expected a non-negative integer"),
+        ("\"stand\", \"squat\"]", "\"standing\", \"squat\"]", "\"standing\"", "unknown value `standing` for stage.monitor.scenarios[1]"),
+        ("by = \"env_steps\"", "by = \"steps\"", "by = ", "unknown value `steps` for stage.reward_shaping.penalty_schedule.by; expected one of `env_steps` or `stand_rate`"),
+        ("[1_000, 1.0]]", "[1_000, 1.0, 2.0]]", "penalty_schedule", "invalid length 3, expected an array of two numbers [x, scale]"),
+        ("points = [[0", "point = [[0", "penalty_schedule", "unknown key `point` in [stage.reward_shaping.penalty_schedule]; valid keys: `by` or `points`"),
+        ("max_action_std = 1.5", "max_action_std = \"big\"", "max_action_std", "ppo.max_action_std: invalid type: string \"big\", expected a number"),
+        ("waist_height = 0.5", "waist_hieght = 0.5", "waist_hieght", "unknown reward term `waist_hieght` in [stage.rewards]"),
+    ];
+    for (old, new, at, fragment) in cases {
+        assert!(text.contains(old), "{old}");
+        let bad = text.replacen(old, new, 1);
+        let message = first_error(&bad);
+        let line = bad[..bad.find(at).unwrap()].matches('\n').count() + 1;
+        assert!(message.starts_with(&format!("c.toml:{line}:")), "{new}: {message} (expected line {line})");
+        assert!(message.contains(fragment), "{new}: {message}");
+    }
+}

@@ -1,0 +1,103 @@
+"""The deterministic stand-rate monitor: how the noise-free policy does from each start state.
+
+PPO's own stand rate counts the episodes of the *stochastic* policy under domain randomization,
+and it can hold steady while the deterministic policy loses a get-up it had (hifar's run E in
+shared/reference/GETUP-RECIPES.md §4). Every `monitor.every` iterations the learner therefore
+runs `monitor.episodes` episodes from each monitored start scenario under nominal conditions
+(evaluation.conditions.evaluation_stage: no randomization, pushes or delay, flat ground, and no
+early terminations, so every episode runs its full length) with the mean action of the
+training-time policy, and reports per scenario: the stand rate (stable standing held for
+success.hold_s, the paper's criterion), the mean recovery time of the successes and the mean
+highest Trunk height.
+
+The episodes' keys come from the stage seed alone (`MONITOR_SEED_SALT`), the same at every
+monitor call, so successive numbers differ only by the policy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jax_env import config as config_lib
+from jax_env.learner import networks as nets_lib
+
+MONITOR_SEED_SALT = 0x6D6F6E  # "mon"
+
+
+@dataclasses.dataclass(frozen=True)
+class Monitor:
+  """Runs the monitor episodes; `__call__(params, normalizer) -> progress["monitor"]`."""
+
+  scenarios: tuple[str, ...]
+  episodes: int
+  run: Callable[[Any, Any], dict]
+
+  def __call__(self, params, normalizer) -> dict:
+    out = jax.device_get(self.run(params, normalizer))
+    per = {k: np.asarray(v).reshape(len(self.scenarios), self.episodes) for k, v in out.items()}
+    result: dict[str, Any] = {"stand_rate": {}, "recovery_time": {}, "max_height": {}}
+    for i, name in enumerate(self.scenarios):
+      success = per["success"][i] > 0
+      result["stand_rate"][name] = float(np.mean(success))
+      times = per["recovery_time"][i][success]
+      result["recovery_time"][name] = float(np.mean(times)) if times.size else None
+      result["max_height"][name] = float(np.mean(per["max_height"][i]))
+    result["mean_stand_rate"] = float(np.mean(list(result["stand_rate"].values())))
+    return result
+
+
+def monitor_stage(stage: Mapping[str, Any]) -> dict:
+  """The stage table the monitor's environment is built from (nominal, no terminations)."""
+  from jax_env.evaluation.conditions import evaluation_stage
+  s = evaluation_stage(stage)
+  s.pop("termination", None)
+  return s
+
+
+def make_monitor(config: config_lib.MonitorConfig | None,
+                 stage_table: Mapping[str, Any] | None, nets: nets_lib.Networks,
+                 backend: str | None, seed_key: jax.Array) -> Monitor | None:
+  """The stage's monitor (`config.scenarios` resolved, see LearnerConfig.from_stage), or None
+  when it is off or the environment cannot be rebuilt (no stage table or backend name)."""
+  if config is None or config.every <= 0 or stage_table is None or backend is None:
+    return None
+  from jax_env.env import FallRecoveryEnv
+
+  env = FallRecoveryEnv(monitor_stage(stage_table), backend=backend)
+  scenarios = tuple(config.scenarios)
+  n = config.episodes
+  forced = jnp.asarray(np.repeat([config_lib.SCENARIOS.index(s) for s in scenarios], n),
+                       jnp.int32)
+  keys = jax.random.split(jax.random.fold_in(seed_key, MONITOR_SEED_SALT), forced.shape[0])
+  steps = env.episode_steps
+  names = ("success", "recovery_time", "max_height")
+
+  @jax.jit
+  def run(params, normalizer):
+    state = env.reset(keys, scenario=forced)
+
+    def step(carry, _):
+      es, ended, record = carry
+      action = nets_lib.privileged_mean(nets, params, normalizer, es.obs, es.privileged)
+      nxt = env.step(es, action)
+      first = (nxt.done > 0) & ~ended
+      record = {k: jnp.where(first, nxt.episode_metrics[k], record[k]) for k in names}
+      return (nxt, ended | first, record), None
+
+    record = {k: jnp.zeros(forced.shape, jnp.float32) for k in names}
+    (_, _, record), _ = jax.lax.scan(step, (state, jnp.zeros(forced.shape, bool), record),
+                                     None, length=steps)
+    return record
+
+  return Monitor(scenarios=scenarios, episodes=n, run=run)
+
+
+def is_due(iteration: int, every: int, last: bool) -> bool:
+  """Whether the monitor runs after `iteration` (1-based): every `every`, and at the end."""
+  return every > 0 and (iteration % every == 0 or last)
+

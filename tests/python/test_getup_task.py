@@ -1,0 +1,219 @@
+"""The get-up task design of issue 10, each part on its own (its reward terms and the reward
+shaping are tested with the others in test_env_parts.py): the `stand` and `squat` start states, the true terminations, staggered
+episode clocks, the bounded action std, the penalty schedule, and the deterministic stand-rate
+monitor on a held `stand`.
+
+Physics runs on the native (C MuJoCo) backend: it compiles in seconds on a CPU.
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jax_env import config, rewards, robot
+from jax_env.config import SCENARIOS, StageConfig, default_stage_dict
+from jax_env.env import FallRecoveryEnv
+from jax_env.kinematics import axis_angle_quat, quat_mul
+from jax_env.learner import monitor as monitor_lib
+from jax_env.learner import networks as nets_lib
+from jax_env.learner import ppo as ppo_lib
+from jax_env.learner import train as train_lib
+from jax_env.scenarios import SQUAT, SQUAT_PITCH
+
+B = 4
+
+
+def _stage(**sections) -> dict:
+  d = default_stage_dict("planar")
+  d["action"] = {"mapping": "default", "scale": 1.0, "clip": 3.0}
+  d["constraints"] = {"torque_limit_scale": 1.0, "joint_range_scale": 1.0,
+                      "velocity_limit_scale": 1.0}
+  d["sim"]["episode_s"] = 1.0
+  d["scenario_params"]["settle_s"] = 0.2
+  d["domain_randomization"] = {"enabled": False}
+  for k, v in sections.items():
+    d[k] = v
+  return d
+
+
+# -- start states -------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def upright_env():
+  scenarios = {"stand": 0.5, "squat": 0.5}
+  return FallRecoveryEnv(_stage(scenarios=scenarios), backend="native")
+
+
+def test_stand_and_squat_start_on_their_feet_without_settling(upright_env):
+  env = upright_env
+  scenario = jnp.array([SCENARIOS.index("stand")] * 2 + [SCENARIOS.index("squat")] * 2)
+  state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(0), 4), scenario)
+  qpos = np.asarray(env.backend.view(state.physics).qpos)
+  stand, _ = robot.keyframe(env.mj_model, "stand")
+  noise = env.stage.scenario_params.ksi_joint_noise
+  assert np.all(np.abs(qpos[:2, 7:] - stand[7:]) < 5 * noise + 1e-6)
+  assert np.allclose(qpos[:2, 2], stand[2], atol=0.03)
+  j = {n: i for i, n in enumerate(robot.JOINT_NAMES)}
+  for joint, value in SQUAT.items():
+    assert np.allclose(qpos[2:, 7 + j[f"Left_{joint}"]], value, atol=5 * noise)
+  assert np.all(qpos[2:, 2] < stand[2] - 0.1)  # crouched
+  # Trunk pitched forward by SQUAT_PITCH: gravity in the Trunk frame leans to +x.
+  assert np.all(np.asarray(state.obs[2:, 0]) == pytest.approx(math.sin(SQUAT_PITCH), abs=0.05))
+  assert np.all(np.asarray(state.control_active) == 1.0)  # no settling: the policy acts at once
+
+
+# -- terminations and clocks --------------------------------------------------------------------
+
+
+def _reset_to_pose(env, quat, height, n=B):
+  stand, _ = robot.keyframe(env.mj_model, "stand")
+  qpos = np.tile(stand, (n, 1)).astype(np.float32)
+  qpos[:, 3:7] = np.asarray(quat)
+  qpos[:, 2] = height
+  return jax.jit(env.reset_to)(jax.random.split(jax.random.PRNGKey(1), n), jnp.asarray(qpos),
+                               jnp.zeros((n, env.mj_model.nv)))
+
+
+def _run(env, state, steps):
+  step = jax.jit(env.step)
+  a = jnp.zeros((state.obs.shape[0], env.action_size))
+  out = []
+  for _ in range(steps):
+    state = step(state, a)
+    out.append((float(state.done[0]), float(state.truncation[0])))
+  return out
+
+
+def test_terminations_end_episodes_without_bootstrap():
+  term = {"low_height": 0.3, "low_height_s": 0.1, "upside_down": 0.9, "side_roll": 0.8}
+  env = FallRecoveryEnv(_stage(termination=term), backend="native")
+  x = np.array([1.0, 0.0, 0.0])
+  # Upside down (head on the floor): ends at the first controlled step.
+  upside = axis_angle_quat(jnp.asarray(x, jnp.float32), math.pi)
+  assert _run(env, _reset_to_pose(env, upside, 0.8), 1) == [(1.0, 0.0)]
+  # On its side: ends at once too.
+  side = axis_angle_quat(jnp.asarray(x, jnp.float32), math.pi / 2)
+  assert _run(env, _reset_to_pose(env, side, 0.3), 1) == [(1.0, 0.0)]
+  # Lying on the back below 0.3 m: ends after more than low_height_s = 5 steps, not before.
+  y = jnp.asarray([0.0, 1.0, 0.0], jnp.float32)
+  supine = axis_angle_quat(y, -math.pi / 2)
+  ends = _run(env, _reset_to_pose(env, supine, 0.15), 6)
+  assert ends[:5] == [(0.0, 0.0)] * 5 and ends[5] == (1.0, 0.0)
+  # Without the termination table nothing ends early.
+  plain = FallRecoveryEnv(_stage(), backend="native")
+  assert all(d == 0.0 for d, _ in _run(plain, _reset_to_pose(plain, supine, 0.15), 6))
+
+
+def test_staggered_clocks_end_first_episodes_at_different_steps(upright_env):
+  env = upright_env
+  n = 16
+  state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(2), n))
+  state = jax.jit(env.stagger)(state, jax.random.PRNGKey(3))
+  limit = np.asarray(state.episode_limit)
+  assert np.all(limit > np.asarray(state.control_start)) and np.all(limit <= env.episode_steps)
+  assert len(set(limit.tolist())) > n // 3  # spread, not lockstep
+  step = jax.jit(env.step)
+  a = jnp.zeros((n, env.action_size))
+  ended_at = np.full(n, -1)
+  for t in range(env.episode_steps):
+    state = step(state, a)
+    done, trunc = np.asarray(state.done), np.asarray(state.truncation)
+    first = (done > 0) & (ended_at < 0)
+    assert np.all(trunc[first] == 1.0)  # a time-out, bootstrapped
+    ended_at[first] = t + 1
+  assert np.array_equal(ended_at, limit)
+  # The episodes that follow run the full length.
+  assert np.all(np.asarray(state.episode_limit) == env.episode_steps)
+
+
+# -- learner: std bound, penalty schedule -------------------------------------------------------
+
+
+def test_action_std_is_projected_to_its_bound():
+  params = {"policy": {"log_std": jnp.log(jnp.array([0.1, 0.5, 3.0]))}, "value": {}}
+  out = ppo_lib.bound_action_std(params, 0.5)
+  assert np.allclose(np.exp(out["policy"]["log_std"]), [0.1, 0.5, 0.5])
+  assert ppo_lib.bound_action_std(params, None) is params
+
+
+def test_action_std_stays_bounded_under_a_large_entropy_bonus(tmp_path):
+  # An entropy bonus that dominates the loss pushes the std up at every step (hifar's run B:
+  # 0.5 -> 2.8); the bound holds it at max_action_std.
+  from toy_env import ToyStandUpEnv, learner_config
+  bound = 0.6
+  cfg = learner_config(env_steps=8 * 2048, ppo={"entropy_cost": 1.0, "max_action_std": bound},
+                       rma={"adaptation_env_steps": 0})
+  stds = []
+
+  def callback(progress):
+    stds.append(progress["losses"]["action_std"])
+    return "continue"
+
+  train_lib.train_stage(ToyStandUpEnv(), cfg, stage_dir=tmp_path, seed=0, callback=callback)
+  assert stds[-1] == pytest.approx(bound, rel=1e-5)
+  assert max(stds) <= bound * (1 + 1e-5)
+
+
+def test_max_action_std_is_validated():
+  d = default_stage_dict("planar")
+  d["ppo"]["max_action_std"] = 0.5  # below initial_action_std = 1.0
+  assert config.check_stage(d) == [{"path": ["ppo", "max_action_std"], "message":
+                                    "max_action_std 0.5 is below initial_action_std 1.0"}]
+
+
+def test_penalty_schedule_by_env_steps_and_by_stand_rate():
+  by_steps = config.PenaltySchedule("env_steps", ((0.0, 0.0), (100.0, 0.0), (300.0, 1.0)))
+  scale = train_lib.PenaltyScale(by_steps)
+  assert scale.initial == 0.0
+  assert [scale.after(0.0, s, None) for s in (50, 100, 200, 300, 900)] == [0, 0, 0.5, 1, 1]
+  by_rate = train_lib.PenaltyScale(config.PenaltySchedule("stand_rate", ((0.2, 0.0),
+                                                                        (0.6, 1.0))))
+  s = by_rate.after(by_rate.initial, 0, 0.4)
+  assert s == pytest.approx(0.5)
+  assert by_rate.after(s, 0, 0.1) == pytest.approx(0.5)  # a ratchet: it never goes back
+  assert by_rate.after(s, 0, None) == pytest.approx(0.5)
+  assert train_lib.PenaltyScale(None).after(0.3, 10, 0.5) == 1.0
+
+
+def test_new_sections_are_validated_with_key_paths():
+  d = default_stage_dict("planar")
+  d["reward_shaping"] = {"clip_at_zero": "yes",
+                         "penalty_schedule": {"by": "env_steps", "points": [[10, 1], [5, 1]]}}
+  d["termination"] = {"upside_down": 1.5, "low_hieght": 0.2}
+  d["monitor"] = {"every": 5, "scenarios": ["stand", "kneeling"]}
+  paths = sorted(tuple(e["path"]) for e in config.check_stage(d))
+  assert paths == sorted([("reward_shaping", "clip_at_zero"),
+                          ("reward_shaping", "penalty_schedule", "points", 1),
+                          ("termination", "low_hieght"), ("termination", "upside_down"),
+                          ("monitor", "scenarios", 1)])
+
+
+# -- the deterministic monitor ------------------------------------------------------------------
+
+
+def test_monitor_reports_a_held_stand_as_standing():
+  # With the "default" mapping a zero action holds the PD targets at `stand`: a policy whose
+  # output layer is zero holds the robot standing, and lying does not get up by itself.
+  table = _stage(scenarios={"stand": 0.5, "supine": 0.5})
+  table["sim"]["episode_s"] = 2.0  # hold_s is 1 s
+  stage = StageConfig.from_dict(table)
+  lc = train_lib.LearnerConfig.from_stage(stage)
+  env = FallRecoveryEnv(stage, backend="native")
+  nets = nets_lib.Networks(lc.network_config(env))
+  params = nets.init(jax.random.PRNGKey(0))
+  params["policy"] = jax.tree_util.tree_map(jnp.zeros_like, params["policy"])
+  normalizer = nets_lib.init_normalizer(nets.config)
+  monitor = monitor_lib.make_monitor(
+      config.MonitorConfig(every=1, episodes=2, scenarios=("stand", "supine")), table, nets,
+      "native", jax.random.PRNGKey(4))
+  out = monitor(params, normalizer)
+  assert out["stand_rate"] == {"stand": 1.0, "supine": 0.0}
+  assert out["recovery_time"]["stand"] == pytest.approx(0.0)
+  assert out["recovery_time"]["supine"] is None
+  assert out["max_height"]["stand"] > 0.6 > out["max_height"]["supine"]
+  assert out["mean_stand_rate"] == pytest.approx(0.5)
+  assert monitor(params, normalizer) == out  # the same episodes every call
