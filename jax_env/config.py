@@ -628,15 +628,14 @@ class _Parser:
     d = self._section(d, "reward_params",
                       ("base_height_target", "base_height_sigma", "hip_roll_ref"),
                       ("waist_height_target", "dof_pos_ref_band"))
-    defaults = RewardParams(0.0, 0.0, 0.0)
     return self._all(RewardParams, dict(
         base_height_target=self.number(d, "base_height_target", p, minimum=0.0, exclusive=True),
         base_height_sigma=self.number(d, "base_height_sigma", p, minimum=0.0, exclusive=True),
         hip_roll_ref=self.number(d, "hip_roll_ref", p),
         waist_height_target=self.number(d, "waist_height_target", p, minimum=0.0,
-                                        exclusive=True, default=defaults.waist_height_target),
+                                        exclusive=True, default=RewardParams.waist_height_target),
         dof_pos_ref_band=self.number(d, "dof_pos_ref_band", p, minimum=0.0,
-                                     default=defaults.dof_pos_ref_band)))
+                                     default=RewardParams.dof_pos_ref_band)))
 
   def reward_shaping(self, d):
     p = ["reward_shaping"]

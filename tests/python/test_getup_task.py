@@ -13,10 +13,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jax_env import config, rewards, robot
+from jax_env import config, robot
 from jax_env.config import SCENARIOS, StageConfig, default_stage_dict
 from jax_env.env import FallRecoveryEnv
-from jax_env.kinematics import axis_angle_quat, quat_mul
+from jax_env.kinematics import axis_angle_quat
 from jax_env.learner import monitor as monitor_lib
 from jax_env.learner import networks as nets_lib
 from jax_env.learner import ppo as ppo_lib
