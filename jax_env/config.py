@@ -1,63 +1,43 @@
-"""Typed configuration of one curriculum stage, parsed from the stage table of the curriculum.
+"""The stage table of a curriculum, checked and turned into a typed `StageConfig`.
 
 The curriculum TOML (docs/contracts.md, "Curriculum TOML") is parsed and type-checked by the
-Rust CLI; what reaches Python is the stage table as a dict. `StageConfig.from_dict` turns it
-into frozen dataclasses so that the environment and the learner never look up string keys at
-run time, and so that every name (joint, scenario, reward term, DR parameter) is checked once,
-here, with an error that names the offending value and lists the valid ones.
+Rust CLI; what reaches Python is the stage table as a dict. `parse_stage` turns it into the
+frozen dataclasses of `jax_env.stage_config`, checking every value here, once: names against
+the vocabularies their modules own (`jax_env.names`), ranges, mixtures that sum to 1, relations
+between keys. Errors name the offending value and list the valid ones.
 
-`check_stage` collects *all* problems (for the CLI, which maps each key path to a TOML line);
-`from_dict` raises the first one as `ConfigError`.
+`check_stage` collects *all* problems with their key paths (for the CLI, which maps each path
+to a TOML line); `parse_stage` raises the first one as `ConfigError`.
 """
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 from typing import Any, Mapping, Sequence
 
-from jax_env import robot
+from jax_env.features import mirror_joint_name
+from jax_env.names import (ACTIVATIONS, DR_PARAMS, JOINT_NAMES, KEYFRAMES, REWARD_TERMS,
+                           SCENARIOS, TERRAINS)
+from jax_env.stage_config import (ACTION_MAPPINGS, DR_DISTRIBUTIONS, DR_OPERATIONS,
+                                  LR_SCHEDULES, ON_MISS, SCHEDULE_KEYS, ActionConfig,
+                                  AdvanceConfig, ConstraintsConfig, DelayConfig,
+                                  DomainRandomizationConfig, DRParam, MirrorConfig,
+                                  MonitorConfig, PenaltySchedule, PPOConfig, PushConfig,
+                                  RewardParams, RewardShaping, RMAConfig, ScenarioParams,
+                                  SimConfig, StageConfig, SuccessConfig, TerminationConfig,
+                                  TerrainConfig)
 
-# ---------------------------------------------------------------------------------------------
-# Static vocabularies (docs/contracts.md, "Robot names").
-
-JOINT_NAMES: tuple[str, ...] = tuple(robot.JOINT_NAMES)
-BODY_NAMES: tuple[str, ...] = tuple(robot.BODY_NAMES)
-CONTACT_BODIES: tuple[str, ...] = tuple(robot.CONTACT_BODIES)
-KEYFRAMES: tuple[str, ...] = tuple(robot.KEYFRAME_NAMES)
-SAGITTAL_JOINTS: tuple[str, ...] = tuple(robot.SAGITTAL_JOINTS)
-LATERAL_JOINTS: tuple[str, ...] = tuple(robot.LATERAL_JOINTS)
-
-KSI_SCENARIOS: tuple[str, ...] = ("ksi_prone_1", "ksi_prone_2", "ksi_prone_3", "ksi_supine_1",
-                                  "ksi_supine_2", "ksi_supine_3")
-SCENARIOS: tuple[str, ...] = KSI_SCENARIOS + ("supine", "prone", "lateral", "sitting",
-                                              "crossed_legs", "random_drop", "stand", "squat")
-TERRAINS: tuple[str, ...] = ("flat", "slope", "obstacle")
-REWARD_TERMS: tuple[str, ...] = ("survival", "base_height", "standing", "orientation",
-                                 "dof_pos_ref", "torques", "dof_vel", "dof_acc", "root_acc",
-                                 "action_rate", "dof_pos_limits", "torque_fatigue", "power",
-                                 "hip_roll", "trunk_height", "waist_height", "upright")
-DR_PARAMS: tuple[str, ...] = ("dof_position", "base_xy_position", "base_linear_velocity",
-                              "joint_stiffness", "joint_damping", "terrain_friction",
-                              "terrain_compliance", "terrain_restitution", "torso_com",
-                              "torso_mass", "other_com", "other_mass")
-DR_OPERATIONS: tuple[str, ...] = ("additive", "scaling")
-DR_DISTRIBUTIONS: tuple[str, ...] = ("gaussian", "uniform")
-ACTION_MAPPINGS: tuple[str, ...] = ("current", "default")
-LR_SCHEDULES: tuple[str, ...] = ("fixed", "adaptive_kl")
-ACTIVATIONS: tuple[str, ...] = ("elu", "swish", "tanh", "relu")
-ON_MISS: tuple[str, ...] = ("stop", "continue")
-# What a penalty schedule's points are keyed on: the stage's env steps so far, or the
-# training stand rate (the fraction of episodes that ended standing, last iteration).
-SCHEDULE_KEYS: tuple[str, ...] = ("env_steps", "stand_rate")
+__all__ = [
+    "ConfigError", "check_stage", "parse_stage",
+    # The typed stage (jax_env.stage_config), re-exported as this module's result types.
+    "ActionConfig", "AdvanceConfig", "ConstraintsConfig", "DelayConfig",
+    "DomainRandomizationConfig", "DRParam", "MirrorConfig", "MonitorConfig", "PenaltySchedule",
+    "PPOConfig", "PushConfig", "RewardParams", "RewardShaping", "RMAConfig", "ScenarioParams",
+    "SimConfig", "StageConfig", "SuccessConfig", "TerminationConfig", "TerrainConfig",
+]
 
 _SUM_TOLERANCE = 1e-6
-
-
-def mirror_joint_name(joint: str) -> str:
-  """The left/right partner of a joint (itself for centre-line joints)."""
-  return JOINT_NAMES[int(robot.JOINT_MIRROR_PERM[JOINT_NAMES.index(joint)])]
 
 
 class ConfigError(ValueError):
@@ -74,246 +54,14 @@ def _valid(names: Sequence[str]) -> str:
   return "valid: " + ", ".join(names)
 
 
-# ---------------------------------------------------------------------------------------------
-# Dataclasses.
-
-
-@dataclasses.dataclass(frozen=True)
-class SimConfig:
-  timestep: float
-  ctrl_dt: float
-  episode_s: float
-
-  @property
-  def n_substeps(self) -> int:
-    return int(round(self.ctrl_dt / self.timestep))
-
-  @property
-  def episode_steps(self) -> int:
-    return int(round(self.episode_s / self.ctrl_dt))
-
-
-@dataclasses.dataclass(frozen=True)
-class ActionConfig:
-  mapping: str
-  scale: float
-  clip: float
-
-
-@dataclasses.dataclass(frozen=True)
-class ConstraintsConfig:
-  torque_limit_scale: float
-  joint_range_scale: float
-  velocity_limit_scale: float
-
-
-@dataclasses.dataclass(frozen=True)
-class ScenarioParams:
-  ksi_joint_noise: float
-  settle_s: float
-
-
-@dataclasses.dataclass(frozen=True)
-class TerrainConfig:
-  weights: Mapping[str, float]  # every terrain in TERRAINS, omitted ones 0
-  slope_max_deg: float
-
-
-@dataclasses.dataclass(frozen=True)
-class RewardParams:
-  base_height_target: float
-  base_height_sigma: float
-  hip_roll_ref: float
-  # Waist body height target of `waist_height` (mjlab's T1 get-up: 0.55 m, against sitting).
-  waist_height_target: float = 0.55
-  # `dof_pos_ref` applies only within this distance of the target height (0: everywhere);
-  # the paper's code pays it only near standing (|h - 0.68| < 0.1).
-  dof_pos_ref_band: float = 0.0
-
-
-@dataclasses.dataclass(frozen=True)
-class PenaltySchedule:
-  """Piecewise-linear scale of every penalty (negative weight) over `by` (SCHEDULE_KEYS).
-
-  points: ((x0, s0), (x1, s1), ...) with x increasing; constant beyond the ends. With
-  by = "stand_rate" the scale never decreases within a stage (a ratchet): a dip in the stand
-  rate does not take the smoothing pressure away again.
-  """
-
-  by: str
-  points: tuple[tuple[float, float], ...]
-
-  def scale(self, x: float) -> float:
-    xs = [p[0] for p in self.points]
-    ys = [p[1] for p in self.points]
-    if x <= xs[0]:
-      return ys[0]
-    for (x0, y0), (x1, y1) in zip(self.points, self.points[1:]):
-      if x <= x1:
-        return y0 + (y1 - y0) * (x - x0) / (x1 - x0) if x1 > x0 else y1
-    return ys[-1]
-
-
-@dataclasses.dataclass(frozen=True)
-class RewardShaping:
-  """How the weighted terms become one reward (defaults: a plain weighted sum)."""
-
-  scale_by_ctrl_dt: bool = False  # weights × control period (the paper's code, legged_gym)
-  clip_at_zero: bool = False  # total clipped at 0 from below (`only_positive_rewards`)
-  penalty_schedule: PenaltySchedule | None = None  # None: penalties at full weight always
-
-
-@dataclasses.dataclass(frozen=True)
-class TerminationConfig:
-  """True terminations (no value bootstrap), apart from the time limit; 0 disables each."""
-
-  low_height: float = 0.0  # Trunk below this (m) ...
-  low_height_s: float = 2.0  # ... for longer than this (s) ends the episode
-  upside_down: float = 0.0  # projected gravity z above this (head down) ends it
-  side_roll: float = 0.0  # |projected gravity y| above this (lying on a side) ends it
-
-
-@dataclasses.dataclass(frozen=True)
-class MonitorConfig:
-  """The deterministic stand-rate monitor during training (no action noise)."""
-
-  every: int = 0  # iterations between monitor rollouts; 0: off
-  episodes: int = 4  # episodes per start scenario
-  scenarios: tuple[str, ...] = ()  # empty: every scenario of the mixture, plus `stand`
-
-
-@dataclasses.dataclass(frozen=True)
-class SuccessConfig:
-  height_tolerance: float
-  upright_tolerance: float
-  dof_tolerance: float
-  hold_s: float
-
-
-@dataclasses.dataclass(frozen=True)
-class DRParam:
-  """One row of the paper's DR table: gaussian range = (mean, std); uniform = (low, high)."""
-
-  range: tuple[float, float]
-  operation: str
-  distribution: str
-
-
-@dataclasses.dataclass(frozen=True)
-class DomainRandomizationConfig:
-  enabled: bool
-  params: Mapping[str, DRParam]  # only the parameters the stage names
-
-  def active(self, name: str) -> DRParam | None:
-    return self.params.get(name) if self.enabled else None
-
-
-@dataclasses.dataclass(frozen=True)
-class DelayConfig:
-  max_s: float
-
-
-@dataclasses.dataclass(frozen=True)
-class PushConfig:
-  enabled: bool
-  interval_s: tuple[float, float]
-  duration_s: float
-  force_max: float
-  torque_max: float
-
-
-@dataclasses.dataclass(frozen=True)
-class PPOConfig:
-  num_envs: int
-  unroll_length: int
-  num_minibatches: int
-  update_epochs: int
-  learning_rate: float
-  lr_schedule: str
-  desired_kl: float
-  entropy_cost: float
-  clip_epsilon: float
-  value_loss_coef: float
-  discount: float
-  gae_lambda: float
-  max_grad_norm: float
-  reward_scaling: float
-  normalize_observations: bool
-  policy_hidden: tuple[int, ...]
-  value_hidden: tuple[int, ...]
-  activation: str
-  initial_action_std: float
-  checkpoint_every: int
-  max_action_std: float | None = None  # the policy's std is kept at or below this
-
-
-@dataclasses.dataclass(frozen=True)
-class RMAConfig:
-  enabled: bool
-  latent_dim: int
-  encoder_hidden: tuple[int, ...]
-  history_len: int
-  adaptation_env_steps: int
-  adaptation_learning_rate: float
-
-
-@dataclasses.dataclass(frozen=True)
-class MirrorConfig:
-  weight: float
-
-
-@dataclasses.dataclass(frozen=True)
-class AdvanceConfig:
-  env_steps: int
-  min_stand_rate: float | None
-  window: int
-  on_miss: str
-
-
-@dataclasses.dataclass(frozen=True)
-class StageConfig:
-  """One curriculum stage. Joint tuples are in canonical order, whatever the TOML's order."""
-
-  name: str
-  init_from: str
-  controlled_joints: tuple[str, ...]
-  observed_joints: tuple[str, ...]
-  sim: SimConfig
-  action: ActionConfig
-  constraints: ConstraintsConfig
-  scenarios: Mapping[str, float]  # every scenario in SCENARIOS, omitted ones 0
-  scenario_params: ScenarioParams
-  terrain: TerrainConfig
-  rewards: Mapping[str, float]  # every term in REWARD_TERMS, omitted ones 0
-  reward_params: RewardParams
-  success: SuccessConfig
-  domain_randomization: DomainRandomizationConfig
-  delay: DelayConfig
-  push: PushConfig
-  ppo: PPOConfig
-  rma: RMAConfig
-  mirror: MirrorConfig
-  advance: AdvanceConfig
-  reward_shaping: RewardShaping = RewardShaping()
-  termination: TerminationConfig = TerminationConfig()
-  monitor: MonitorConfig = MonitorConfig()
-
-  @property
-  def monitor_scenarios(self) -> tuple[str, ...]:
-    """The start scenarios the monitor measures, in SCENARIOS order."""
-    if self.monitor.scenarios:
-      return tuple(s for s in SCENARIOS if s in self.monitor.scenarios)
-    return tuple(s for s in SCENARIOS if self.scenarios[s] > 0 or s == "stand")
-
-  @classmethod
-  def from_dict(cls, d: Mapping[str, Any]) -> "StageConfig":
-    """Parses a stage table; raises ConfigError for the first problem found."""
-    parser = _Parser()
-    stage = parser.stage(d)
-    if parser.errors:
-      path, message = parser.errors[0]
-      raise ConfigError(path, message)
-    return stage
+def parse_stage(d: Mapping[str, Any]) -> StageConfig:
+  """Parses a stage table; raises ConfigError for the first problem found."""
+  parser = _Parser()
+  stage = parser.stage(d)
+  if parser.errors:
+    path, message = parser.errors[0]
+    raise ConfigError(path, message)
+  return stage
 
 
 def check_stage(d: Mapping[str, Any]) -> list[dict]:
@@ -849,201 +597,3 @@ class _Parser:
       if rate is None:
         return None
     return AdvanceConfig(min_stand_rate=rate, **values)
-
-
-# ---------------------------------------------------------------------------------------------
-# Feature names (docs/contracts.md, "Feature names").
-
-
-def _as_stage(stage) -> StageConfig:
-  return stage if isinstance(stage, StageConfig) else StageConfig.from_dict(stage)
-
-
-def privileged_names() -> tuple[str, ...]:
-  """Static: the same list in every stage, so the critic and encoder inputs never change size
-  for a reason other than the observed/controlled joints."""
-  names = ["friction", "compliance", "restitution"]
-  names += [f"mass_scale/{b}" for b in BODY_NAMES]
-  names += [f"com_offset/{b}/{a}" for b in BODY_NAMES for a in "xyz"]
-  names += [f"kp_scale/{j}" for j in JOINT_NAMES]
-  names += [f"kd_scale/{j}" for j in JOINT_NAMES]
-  names += ["torque_limit_scale", "delay"]
-  names += ["base_height", "base_lin_vel/x", "base_lin_vel/y", "base_lin_vel/z"]
-  names += [f"contact/{b}" for b in CONTACT_BODIES]
-  names += [f"push_force/{a}" for a in "xyz"] + [f"push_torque/{a}" for a in "xyz"]
-  names += ["terrain/slope_x", "terrain/slope_y", "terrain/obstacle"]
-  return tuple(names)
-
-
-def _mirror_body(body: str) -> str:
-  return BODY_NAMES[int(robot.BODY_MIRROR_PERM[BODY_NAMES.index(body)])]
-
-
-_VEC_SIGN = {"x": 1.0, "y": -1.0, "z": 1.0}  # true vectors under the y -> -y reflection
-_PSEUDO_SIGN = {"x": -1.0, "y": 1.0, "z": -1.0}  # angular velocities, torques
-
-
-def mirror_feature(name: str, kind: str = "obs") -> tuple[str, float]:
-  """The left/right mirror of a feature: (mirrored feature's name, sign).
-
-  mirror(x)[i] = sign_i · x[index of name_i's mirror]. Joints swap sides and flip sign for roll
-  and yaw axes (robot.JOINT_MIRROR_SIGN); bodies swap sides; lateral components of vectors
-  (gravity y, base velocity y, CoM offset y, push force y, slope_y) and the x/z components of
-  pseudo-vectors (angular velocity, push torque) flip sign. `kind="action"` reads bare joint
-  names.
-  """
-  if kind == "action":
-    j = JOINT_NAMES.index(name)
-    return mirror_joint_name(name), float(robot.JOINT_MIRROR_SIGN[j])
-  parts = name.split("/")
-  head = parts[0]
-  if head in ("joint_pos", "joint_vel", "prev_action"):
-    j = JOINT_NAMES.index(parts[1])
-    return f"{head}/{mirror_joint_name(parts[1])}", float(robot.JOINT_MIRROR_SIGN[j])
-  if head in ("kp_scale", "kd_scale"):
-    return f"{head}/{mirror_joint_name(parts[1])}", 1.0
-  if head in ("gravity", "base_lin_vel", "push_force"):
-    return name, _VEC_SIGN[parts[1]]
-  if head in ("ang_vel", "push_torque"):
-    return name, _PSEUDO_SIGN[parts[1]]
-  if head in ("mass_scale", "contact"):
-    return f"{head}/{_mirror_body(parts[1])}", 1.0
-  if head == "com_offset":
-    return f"com_offset/{_mirror_body(parts[1])}/{parts[2]}", _VEC_SIGN[parts[2]]
-  if name == "terrain/slope_y":
-    return name, -1.0
-  return name, 1.0  # scalars unchanged by the reflection
-
-
-def mirror_map(names: Sequence[str], kind: str = "obs"):
-  """(perm int32, sign float32) with mirror(x) = x[..., perm] * sign over a feature list."""
-  import numpy as np
-  index = {n: i for i, n in enumerate(names)}
-  perm, sign = [], []
-  for n in names:
-    m, s = mirror_feature(n, kind)
-    if m not in index:
-      raise ValueError(f"feature {n!r} mirrors to {m!r}, which is not in the list")
-    perm.append(index[m])
-    sign.append(s)
-  return np.array(perm, np.int32), np.array(sign, np.float32)
-
-
-def feature_names(stage) -> tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]:
-  """(obs_names, privileged_names, action_names) of a stage (StageConfig or stage dict)."""
-  s = _as_stage(stage)
-  obs = ["gravity/x", "gravity/y", "gravity/z", "ang_vel/x", "ang_vel/y", "ang_vel/z"]
-  obs += [f"joint_pos/{j}" for j in s.observed_joints]
-  obs += [f"joint_vel/{j}" for j in s.observed_joints]
-  obs += [f"prev_action/{j}" for j in s.controlled_joints]
-  return tuple(obs), privileged_names(), tuple(s.controlled_joints)
-
-
-# ---------------------------------------------------------------------------------------------
-# Default stages (the paper's two stages at test scale).
-
-# The paper's DR table (Table "Domain Randomization Parameters"), verbatim.
-PAPER_DR: dict[str, dict] = {
-    "dof_position": {"range": [0.0, 0.05], "operation": "additive", "distribution": "gaussian"},
-    "base_xy_position": {"range": [-1.0, 1.0], "operation": "additive",
-                         "distribution": "uniform"},
-    "base_linear_velocity": {"range": [0.0, 0.1], "operation": "additive",
-                             "distribution": "gaussian"},
-    "joint_stiffness": {"range": [0.95, 1.05], "operation": "scaling", "distribution": "uniform"},
-    "joint_damping": {"range": [0.95, 1.05], "operation": "scaling", "distribution": "uniform"},
-    "terrain_friction": {"range": [0.1, 2.0], "operation": "additive", "distribution": "uniform"},
-    "terrain_compliance": {"range": [0.5, 1.5], "operation": "additive",
-                           "distribution": "uniform"},
-    "terrain_restitution": {"range": [0.1, 0.9], "operation": "additive",
-                            "distribution": "uniform"},
-    "torso_com": {"range": [-0.1, 0.1], "operation": "additive", "distribution": "uniform"},
-    "torso_mass": {"range": [0.8, 1.2], "operation": "scaling", "distribution": "uniform"},
-    "other_com": {"range": [-0.005, 0.005], "operation": "additive", "distribution": "uniform"},
-    "other_mass": {"range": [0.98, 1.02], "operation": "scaling", "distribution": "uniform"},
-}
-
-_PENALTIES = {
-    # Per control step (50 Hz). Penalties are negative weights; magnitudes are sized so that
-    # each term contributes O(0.01–0.1) per step in a typical get-up.
-    "orientation": -1.0,
-    "dof_pos_ref": -0.05,
-    "torques": -1e-5,
-    "dof_vel": -1e-3,
-    "dof_acc": -1e-7,
-    "root_acc": -1e-4,
-    "action_rate": -0.01,
-    "dof_pos_limits": -1.0,
-    "torque_fatigue": -0.01,
-    "power": -1e-3,
-    "hip_roll": -0.5,
-}
-
-
-def default_stage_dict(kind: str) -> dict:
-  """A complete, valid stage table: "planar" (stage 1) or "full" (stage 2).
-
-  Values follow the paper: stage 1 is planar (sagittal joints, key states + supine/prone, lenient
-  constraints: 1.2× range, 1.5× torque and velocity), stage 2 adds hip roll, 3D falls, terrain,
-  the robot's real limits and every DR row. The action mapping is "current" (target = q +
-  scale·a): for get-up the pose changes by radians, and offsets from the current pose keep the
-  useful action range small everywhere (Playground's and mjlab's get-up tasks found it to work
-  better than offsets from a fixed default). Learner sizes are small (tests); real curricula set
-  their own.
-  """
-  if kind not in ("planar", "full"):
-    raise ValueError(f"unknown default stage kind {kind!r}; valid: planar, full")
-  planar = kind == "planar"
-  controlled = list(SAGITTAL_JOINTS) if planar else list(SAGITTAL_JOINTS) + list(LATERAL_JOINTS)
-  controlled = [j for j in JOINT_NAMES if j in controlled]
-  observed = list(controlled) if planar else list(JOINT_NAMES)
-  if planar:
-    scenarios = {k: 0.1 for k in KSI_SCENARIOS} | {"supine": 0.2, "prone": 0.2}
-    terrain = {"flat": 1.0, "slope_max_deg": 0.0}
-    dr_names = ("dof_position", "joint_stiffness", "joint_damping", "terrain_friction",
-                "torso_mass", "other_mass")
-    penalty_scale = 0.1  # lenient: explore first, smooth later
-  else:
-    scenarios = ({k: 0.05 for k in KSI_SCENARIOS}
-                 | {"supine": 0.1, "prone": 0.1, "lateral": 0.1, "sitting": 0.1,
-                    "crossed_legs": 0.1, "random_drop": 0.2})
-    terrain = {"flat": 0.6, "slope": 0.3, "obstacle": 0.1, "slope_max_deg": 10.0}
-    dr_names = DR_PARAMS
-    penalty_scale = 1.0
-  rewards = {"survival": 0.1, "base_height": 1.0, "standing": 2.0}
-  rewards |= {k: w * penalty_scale for k, w in _PENALTIES.items()}
-  return {
-      "name": kind,
-      "init_from": "none" if planar else "previous",
-      "controlled_joints": controlled,
-      "observed_joints": observed,
-      "sim": {"timestep": 0.005, "ctrl_dt": 0.02, "episode_s": 6.0 if planar else 8.0},
-      "action": {"mapping": "current", "scale": 0.5, "clip": 1.0},
-      "constraints": ({"torque_limit_scale": 1.5, "joint_range_scale": 1.2,
-                       "velocity_limit_scale": 1.5} if planar else
-                      {"torque_limit_scale": 1.0, "joint_range_scale": 1.0,
-                       "velocity_limit_scale": 1.0}),
-      "scenarios": scenarios,
-      "scenario_params": {"ksi_joint_noise": 0.05, "settle_s": 1.0},
-      "terrain": terrain,
-      "rewards": rewards,
-      "reward_params": {"base_height_target": 0.67, "base_height_sigma": 20.0,
-                        "hip_roll_ref": 0.0},
-      "success": {"height_tolerance": 0.05, "upright_tolerance": 0.1, "dof_tolerance": 0.3,
-                  "hold_s": 1.0},
-      "domain_randomization": {"enabled": True} | {k: copy.deepcopy(PAPER_DR[k])
-                                                   for k in dr_names},
-      "delay": {"max_s": 0.0 if planar else 0.02},
-      "push": {"enabled": not planar, "interval_s": [2.0, 4.0], "duration_s": 0.2,
-               "force_max": 100.0, "torque_max": 10.0},
-      "ppo": {"num_envs": 8, "unroll_length": 4, "num_minibatches": 2, "update_epochs": 1,
-              "learning_rate": 3e-4, "lr_schedule": "adaptive_kl", "desired_kl": 0.01,
-              "entropy_cost": 0.005, "clip_epsilon": 0.2, "value_loss_coef": 0.5,
-              "discount": 0.97, "gae_lambda": 0.95, "max_grad_norm": 1.0,
-              "reward_scaling": 1.0, "normalize_observations": True,
-              "policy_hidden": [32, 32], "value_hidden": [32, 32], "activation": "elu",
-              "initial_action_std": 1.0, "checkpoint_every": 50},
-      "rma": {"enabled": True, "latent_dim": 8, "encoder_hidden": [32], "history_len": 10,
-              "adaptation_env_steps": 256, "adaptation_learning_rate": 1e-3},
-      "mirror": {"weight": 0.5},
-      "advance": {"env_steps": 1024, "min_stand_rate": 0.8, "window": 5, "on_miss": "continue"},
-  }

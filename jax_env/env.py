@@ -38,17 +38,17 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jax_env import config as config_lib
+from jax_env import features
 from jax_env import rewards as rewards_lib
 from jax_env import robot
-from jax_env.config import SCENARIOS, TERRAINS, StageConfig
 from jax_env.kinematics import Kinematics, rotate_inverse
 from jax_env.physics import make_backend
 from jax_env.physics.view import PhysicsView
-from jax_env.randomization import (EpisodeDraw, PushState, Pusher, Randomizer,
+from jax_env.randomization import (TERRAINS, EpisodeDraw, PushState, Pusher, Randomizer,
                                    constrained_model, delayed_ctrl,
                                    velocity_limited_target)
-from jax_env.scenarios import ScenarioSampler
+from jax_env.scenarios import SCENARIOS, ScenarioSampler
+from jax_env.stage_config import StageConfig
 
 
 def _forced_index(value, names, what, shape):
@@ -98,7 +98,7 @@ class EnvState:
   stand_steps: jax.Array  # [B] int32 controlled steps spent standing this episode
   penalty_scale: jax.Array  # [B] the penalty schedule's current scale (set by the learner)
   control_start: jax.Array  # [B] int32 first controlled step (settling before it)
-  scenario: jax.Array  # [B] int32 index into config.SCENARIOS
+  scenario: jax.Array  # [B] int32 index into SCENARIOS
   targets: jax.Array  # [B, K, nu] issued PD targets, newest first (for the delay)
   hold_target: jax.Array  # [B, nu] initial joint targets held while settling
   last_action: jax.Array  # [B, nA] the action that took effect in the last step (0 if none)
@@ -127,7 +127,7 @@ class FallRecoveryEnv:
                                 **({"forward_on_init": False} if backend == "mjx" else {}))
     m = self.mj_model
 
-    self.obs_names, self.privileged_names, self.action_names = config_lib.feature_names(stage)
+    self.obs_names, self.privileged_names, self.action_names = features.feature_names(stage)
     self.obs_size, self.privileged_size = len(self.obs_names), len(self.privileged_names)
     self.action_size = len(self.action_names)
     self.ctrl_dt = stage.sim.ctrl_dt
@@ -136,9 +136,9 @@ class FallRecoveryEnv:
     self.settle_steps = int(round(stage.scenario_params.settle_s / self.ctrl_dt))
     self.hold_steps = max(int(math.ceil(stage.success.hold_s / self.ctrl_dt - 1e-9)), 1)
     self.mirror = MirrorMaps(
-        *config_lib.mirror_map(self.obs_names),
-        *config_lib.mirror_map(self.privileged_names),
-        *config_lib.mirror_map(self.action_names, kind="action"))
+        *features.mirror_map(self.obs_names),
+        *features.mirror_map(self.privileged_names),
+        *features.mirror_map(self.action_names, kind="action"))
 
     # Ids and constants, cached once by name.
     j = {n: i for i, n in enumerate(robot.JOINT_NAMES)}
@@ -186,9 +186,9 @@ class FallRecoveryEnv:
             terrain: str | jax.Array | None = None) -> EnvState:
     """Fresh episodes from per-env keys [B] (jax.random.split(key, B)).
 
-    `scenario` forces one scenario (a name from config.SCENARIOS) or per-env indices [B] into
-    config.SCENARIOS (−1: draw from the mixture); by default every env draws from the stage's
-    mixture. `terrain` likewise forces a terrain of config.TERRAINS (a slope draws its angle up
+    `scenario` forces one scenario (a name from SCENARIOS) or per-env indices [B] into
+    SCENARIOS (−1: draw from the mixture); by default every env draws from the stage's
+    mixture. `terrain` likewise forces a terrain of TERRAINS (a slope draws its angle up
     to the stage's slope_max_deg, an obstacle sits between the legs, as in training). Forcing is
     for evaluation; training and every auto-reset use the mixtures.
     """
@@ -415,9 +415,10 @@ class FallRecoveryEnv:
   def _obs(self, view: PhysicsView, draw: EpisodeDraw, last_action) -> jax.Array:
     q = view.qpos[:, 7:] - self.q_stand
     qd = view.qvel[:, 6:]
-    return jnp.concatenate([
-        self._gravity(view, draw), view.sensordata[:, self.gyro],
-        q[:, self.obs_idx], qd[:, self.obs_idx], last_action], axis=-1)
+    return features.assemble(features.OBS_LAYOUT, {
+        "gravity": self._gravity(view, draw), "ang_vel": view.sensordata[:, self.gyro],
+        "joint_pos": q[:, self.obs_idx], "joint_vel": qd[:, self.obs_idx],
+        "prev_action": last_action}, self.stage)
 
   def _privileged(self, view: PhysicsView, draw: EpisodeDraw, push: PushState, pushing,
                   scheduled_force=0.0):
@@ -426,13 +427,15 @@ class FallRecoveryEnv:
     on = pushing[:, None].astype(jnp.float32)
     contact = (view.sensordata[:, self.contact_adr] > 0).astype(jnp.float32)
     tls = jnp.full((batch, 1), self.stage.constraints.torque_limit_scale)
-    return jnp.concatenate([
-        col(draw.friction), col(draw.compliance), col(draw.restitution),
-        draw.mass_scale, draw.com_offset.reshape(batch, -1),
-        draw.kp_scale, draw.kd_scale, tls, col(draw.delay_s),
-        view.qpos[:, 2:3], view.qvel[:, 0:3], contact,
-        push.force * on + scheduled_force, push.torque * on,
-        draw.slope, col(draw.obstacle)], axis=-1)
+    return features.assemble(features.PRIVILEGED_LAYOUT, {
+        "friction": col(draw.friction), "compliance": col(draw.compliance),
+        "restitution": col(draw.restitution), "mass_scale": draw.mass_scale,
+        "com_offset": draw.com_offset.reshape(batch, -1), "kp_scale": draw.kp_scale,
+        "kd_scale": draw.kd_scale, "torque_limit_scale": tls, "delay": col(draw.delay_s),
+        "base_height": view.qpos[:, 2:3], "base_lin_vel": view.qvel[:, 0:3],
+        "contact": contact, "push_force": push.force * on + scheduled_force,
+        "push_torque": push.torque * on,
+        "terrain": jnp.concatenate([draw.slope, col(draw.obstacle)], axis=-1)})
 
   def _quantities(self, view: PhysicsView, state: EnvState, action) -> rewards_lib.Quantities:
     q, qd = view.qpos[:, 7:], view.qvel[:, 6:]

@@ -317,11 +317,11 @@ def _version(dist: str) -> str | None:
 
 def _stage_table(spec: ActorSpec, stage: dict | None, where: Path) -> dict | None:
   """The stage table the actor acts in (the request's, else checkpoint.json's), or None."""
-  from jax_env import config as config_lib
+  from jax_env import features
   from jax_env.learner import checkpoint as ckpt_lib
 
   if stage is not None:
-    obs, _, act = config_lib.feature_names(stage)
+    obs, _, act = features.feature_names(stage)
     if tuple(obs) != spec.obs_names or tuple(act) != spec.action_names:
       raise ValueError(f"{where}: the given stage {stage.get('name')!r} does not produce the "
                        "checkpoint's obs_names/action_names; it is not the stage this checkpoint "

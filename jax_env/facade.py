@@ -90,8 +90,8 @@ def check_stage(stage: dict) -> list[dict]:
 
 def feature_names(stage: dict) -> dict:
   """{"obs_names", "privileged_names", "action_names"} of a stage."""
-  from jax_env import config
-  obs, priv, act = config.feature_names(stage)
+  from jax_env import features
+  obs, priv, act = features.feature_names(stage)
   return {"obs_names": list(obs), "privileged_names": list(priv), "action_names": list(act)}
 
 
@@ -112,11 +112,11 @@ def train_stage(request: dict, callback: Callable[[dict], str] | None) -> dict:
   if backend not in _BACKENDS:
     raise ValueError(f"train_stage: unknown backend {backend!r}; valid: {', '.join(_BACKENDS)}")
 
-  from jax_env import config as config_lib
   from jax_env.env import FallRecoveryEnv
   from jax_env.learner import train
+  from jax_env.stage_config import StageConfig
 
-  stage = config_lib.StageConfig.from_dict(request["stage"])
+  stage = StageConfig.from_dict(request["stage"])
   learner_config = train.LearnerConfig.from_stage(stage)
   if request.get("stage_name"):
     learner_config = dataclasses.replace(learner_config, stage_name=request["stage_name"])

@@ -54,10 +54,18 @@ import numpy as np
 from flax import struct
 
 from jax_env import robot
-from jax_env.config import TERRAINS, DRParam, StageConfig
 from jax_env.kinematics import quat_to_mat
 from jax_env.physics.view import ModelParams
+from jax_env.stage_config import DRParam, StageConfig
 
+# The DR vocabulary of curricula (`[stage.domain_randomization]` keys): the rows of the table
+# above, in its order.
+DR_PARAMS: tuple[str, ...] = ("dof_position", "base_xy_position", "base_linear_velocity",
+                              "joint_stiffness", "joint_damping", "terrain_friction",
+                              "terrain_compliance", "terrain_restitution", "torso_com",
+                              "torso_mass", "other_com", "other_mass")
+# The terrain vocabulary (`[stage.terrain]` weights); an episode's terrain is an index into it.
+TERRAINS: tuple[str, ...] = ("flat", "slope", "obstacle")
 OBSTACLE_PARK = np.array([0.0, 0.0, -5.0], np.float32)  # far below the floor, touches nothing
 
 

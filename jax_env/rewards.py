@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jax_env.config import REWARD_TERMS, RewardParams, RewardShaping, SuccessConfig
+from jax_env.stage_config import RewardParams, RewardShaping, SuccessConfig
 
 
 @struct.dataclass
@@ -147,7 +147,8 @@ TERMS = {
     "hip_roll": hip_roll, "trunk_height": trunk_height, "waist_height": waist_height,
     "upright": upright,
 }
-assert tuple(TERMS) == REWARD_TERMS
+# The reward vocabulary of curricula (`[stage.rewards]` keys), in this order everywhere.
+REWARD_TERMS: tuple[str, ...] = tuple(TERMS)
 
 
 def compute(x: Quantities, weights, params: RewardParams,

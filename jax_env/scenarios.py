@@ -31,9 +31,17 @@ import numpy as np
 from flax import struct
 
 from jax_env import kinematics, robot
-from jax_env.config import KSI_SCENARIOS, SCENARIOS, StageConfig
 from jax_env.kinematics import axis_angle_quat, quat_mul
 from jax_env.randomization import OBSTACLE_PARK, EpisodeDraw, Randomizer
+from jax_env.stage_config import StageConfig
+
+# The key states of the paper's KSI: each starts at the model keyframe of its name.
+KSI_SCENARIOS: tuple[str, ...] = ("ksi_prone_1", "ksi_prone_2", "ksi_prone_3", "ksi_supine_1",
+                                  "ksi_supine_2", "ksi_supine_3")
+# The start-state vocabulary of curricula (`[stage.scenarios]` keys), in this order everywhere
+# (an episode's scenario is an index into it).
+SCENARIOS: tuple[str, ...] = KSI_SCENARIOS + ("supine", "prone", "lateral", "sitting",
+                                              "crossed_legs", "random_drop", "stand", "squat")
 
 # Scenarios whose initial pose is not a resting pose: their episodes start with settling.
 SETTLING_SCENARIOS = frozenset({"lateral", "sitting", "crossed_legs", "random_drop"})

@@ -4,6 +4,8 @@ use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 
+use crate::names::names;
+
 /// Train Booster T1 fall-recovery policies with the HiFAR two-stage curriculum.
 #[derive(Debug, Parser)]
 #[command(name = "hifar", version, about, long_about = None)]
@@ -202,17 +204,17 @@ pub struct EvalArgs {
 pub struct RolloutArgs {
     /// A checkpoint directory, or a run directory (the final checkpoint of its last completed stage).
     pub target: PathBuf,
-    /// Initial scenario (supine, prone, lateral, sitting, crossed_legs, random_drop, stand, squat, ksi_*).
-    #[arg(long, default_value = "supine")]
+    #[arg(long, default_value = "supine", help = one_of_help("Initial scenario", &names().scenarios))]
     pub scenario: String,
     /// A push of this many newtons 0.8 s into the recovery, for 200 ms, as in the paper.
     #[arg(long, value_name = "N")]
     pub push_force: Option<f64>,
-    /// Push direction in the torso frame [default: forward from prone, backward otherwise].
-    #[arg(long, value_name = "DIR")]
+    #[arg(long, value_name = "DIR", help = one_of_help(
+        "Push direction in the torso frame [default: forward from prone, backward otherwise]",
+        &names().push_directions,
+    ))]
     pub push_direction: Option<String>,
-    /// Terrain: flat, slope or obstacle.
-    #[arg(long, default_value = "flat")]
+    #[arg(long, default_value = "flat", help = one_of_help("Terrain", &names().terrains))]
     pub terrain: String,
     /// Seed of the episode's random draws.
     #[arg(long, value_name = "N", default_value_t = 0)]
@@ -256,4 +258,12 @@ pub struct ExportArgs {
     /// Replace an existing output file.
     #[arg(long)]
     pub force: bool,
+}
+
+/// `what: a, b or c` — the help of a flag whose values are a vocabulary jax_env exports.
+fn one_of_help(what: &str, names: &[&str]) -> String {
+    match names.split_last() {
+        Some((last, rest)) if !rest.is_empty() => format!("{what}: {} or {last}", rest.join(", ")),
+        _ => format!("{what}: {}", names.join("")),
+    }
 }

@@ -22,7 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jax_env.config import SCENARIOS, TERRAINS
+from jax_env.randomization import TERRAINS
+from jax_env.scenarios import SCENARIOS
 
 # The paper's standard setup: floor friction 1.0 (the torso keeps the model's 11.7 kg).
 STANDARD_FRICTION = 1.0

@@ -58,7 +58,7 @@ def rollout(request: dict) -> dict:
 
   from jax_env import robot
   from jax_env import rewards as rewards_lib
-  from jax_env.config import SCENARIOS, TERRAINS
+  from jax_env.names import SCENARIOS, TERRAINS
   from jax_env.env import FallRecoveryEnv
   from jax_env.evaluation import conditions
   from jax_env.evaluation import policy as policy_lib

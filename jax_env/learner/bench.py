@@ -18,7 +18,8 @@ import time
 import jax
 import jax.numpy as jnp
 
-from jax_env import config as config_lib
+from jax_env import defaults, features
+from jax_env.stage_config import StageConfig
 from jax_env.learner import networks as nets_lib
 from jax_env.learner import ppo as ppo_lib
 from jax_env.learner import rma as rma_lib
@@ -26,8 +27,8 @@ from jax_env.learner import rma as rma_lib
 
 def measure(num_envs: int = 1024, unroll_length: int = 20, num_minibatches: int = 8,
             update_epochs: int = 4, repeats: int = 3, mirror_weight: float = 0.5) -> dict:
-  stage = config_lib.StageConfig.from_dict(config_lib.default_stage_dict("full"))
-  obs_names, priv_names, act_names = config_lib.feature_names(stage)
+  stage = StageConfig.from_dict(defaults.default_stage_dict("full"))
+  obs_names, priv_names, act_names = features.feature_names(stage)
   ppo = stage.ppo.__class__(**{**stage.ppo.__dict__, "num_envs": num_envs,
                                "unroll_length": unroll_length,
                                "num_minibatches": num_minibatches,
@@ -78,8 +79,8 @@ def measure(num_envs: int = 1024, unroll_length: int = 20, num_minibatches: int 
 
 def stage_maps(obs_names, priv_names, act_names):
   from jax_env.env import MirrorMaps
-  return MirrorMaps(*config_lib.mirror_map(obs_names), *config_lib.mirror_map(priv_names),
-                    *config_lib.mirror_map(act_names, kind="action"))
+  return MirrorMaps(*features.mirror_map(obs_names), *features.mirror_map(priv_names),
+                    *features.mirror_map(act_names, kind="action"))
 
 
 def main() -> None:

@@ -23,7 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jax_env import config as config_lib
+from jax_env import stage_config
+from jax_env.scenarios import SCENARIOS
 from jax_env.learner import networks as nets_lib
 
 MONITOR_SEED_SALT = 0x6D6F6E  # "mon"
@@ -59,7 +60,7 @@ def monitor_stage(stage: Mapping[str, Any]) -> dict:
   return s
 
 
-def make_monitor(config: config_lib.MonitorConfig | None,
+def make_monitor(config: stage_config.MonitorConfig | None,
                  stage_table: Mapping[str, Any] | None, nets: nets_lib.Networks,
                  backend: str | None, seed_key: jax.Array) -> Monitor | None:
   """The stage's monitor (`config.scenarios` resolved, see LearnerConfig.from_stage), or None
@@ -71,7 +72,7 @@ def make_monitor(config: config_lib.MonitorConfig | None,
   env = FallRecoveryEnv(monitor_stage(stage_table), backend=backend)
   scenarios = tuple(config.scenarios)
   n = config.episodes
-  forced = jnp.asarray(np.repeat([config_lib.SCENARIOS.index(s) for s in scenarios], n),
+  forced = jnp.asarray(np.repeat([SCENARIOS.index(s) for s in scenarios], n),
                        jnp.int32)
   keys = jax.random.split(jax.random.fold_in(seed_key, MONITOR_SEED_SALT), forced.shape[0])
   steps = env.episode_steps

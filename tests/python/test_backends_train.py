@@ -11,7 +11,7 @@ import copy
 
 import numpy as np
 
-from jax_env import config as config_lib
+from jax_env import defaults
 from jax_env import facade
 
 # Per-iteration mean rewards (per step, per term) may differ by this much between backends.
@@ -20,7 +20,7 @@ REWARD_FLOOR = 0.02
 
 
 def _stage():
-  s = copy.deepcopy(config_lib.default_stage_dict("planar"))
+  s = copy.deepcopy(defaults.default_stage_dict("planar"))
   s["sim"]["episode_s"] = 0.4
   s["scenario_params"]["settle_s"] = 0.04
   s["ppo"].update(num_envs=8, unroll_length=5, num_minibatches=2, update_epochs=1,

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from jax_env import config, robot
-from jax_env.config import ConfigError, StageConfig, check_stage, default_stage_dict
+from jax_env import config, features, names, robot
+from jax_env.config import ConfigError, StageConfig, check_stage
+from jax_env.defaults import default_stage_dict
 
 
 @pytest.fixture(params=["planar", "full"])
@@ -19,7 +20,7 @@ def test_default_stages_are_valid_and_follow_the_paper():
   assert check_stage(default_stage_dict("full")) == []
   # Stage 1: sagittal joints only, key states + supine/prone, lenient constraints.
   assert set(planar.controlled_joints) == set(robot.SAGITTAL_JOINTS)
-  assert {s for s, w in planar.scenarios.items() if w > 0} == set(config.KSI_SCENARIOS) | {
+  assert {s for s, w in planar.scenarios.items() if w > 0} == set(names.KSI_SCENARIOS) | {
       "supine", "prone"}
   assert planar.constraints.joint_range_scale > 1 and planar.constraints.torque_limit_scale > 1
   # Stage 2: + hip roll, 3D falls, real limits, every DR row with the paper's ranges.
@@ -27,7 +28,7 @@ def test_default_stages_are_valid_and_follow_the_paper():
   assert all(full.scenarios[s] > 0 for s in ("lateral", "sitting", "crossed_legs",
                                              "random_drop"))
   assert full.constraints == config.ConstraintsConfig(1.0, 1.0, 1.0)
-  assert set(full.domain_randomization.params) == set(config.DR_PARAMS)
+  assert set(full.domain_randomization.params) == set(names.DR_PARAMS)
   assert full.domain_randomization.params["terrain_friction"].range == (0.1, 2.0)
   assert full.domain_randomization.params["torso_com"].range == (-0.1, 0.1)
   assert full.delay.max_s == pytest.approx(0.02)
@@ -36,7 +37,7 @@ def test_default_stages_are_valid_and_follow_the_paper():
   assert full.action.mapping == "current"
   # Every reward term of the paper has a weight; penalties are negative.
   for stage in (planar, full):
-    assert set(stage.rewards) == set(config.REWARD_TERMS)
+    assert set(stage.rewards) == set(names.REWARD_TERMS)
     assert stage.rewards["survival"] > 0 and stage.rewards["standing"] > 0
     assert all(stage.rewards[t] < 0 for t in ("orientation", "torques", "dof_vel", "dof_acc",
                                               "root_acc", "action_rate", "dof_pos_limits",
@@ -45,7 +46,7 @@ def test_default_stages_are_valid_and_follow_the_paper():
 
 def test_feature_names_match_the_contract(stage_dict):
   stage = StageConfig.from_dict(stage_dict)
-  obs, priv, act = config.feature_names(stage_dict)
+  obs, priv, act = features.feature_names(stage_dict)
   joints = [j for j in robot.JOINT_NAMES if j in stage.observed_joints]
   ctrl = [j for j in robot.JOINT_NAMES if j in stage.controlled_joints]
   assert list(obs) == (["gravity/x", "gravity/y", "gravity/z", "ang_vel/x", "ang_vel/y",
@@ -72,7 +73,7 @@ def test_feature_names_use_canonical_joint_order_whatever_the_config_order():
   d = default_stage_dict("planar")
   d["controlled_joints"] = list(reversed(d["controlled_joints"]))
   d["observed_joints"] = list(reversed(d["observed_joints"]))
-  obs, _, act = config.feature_names(d)
+  obs, _, act = features.feature_names(d)
   assert list(act) == [j for j in robot.JOINT_NAMES if j in robot.SAGITTAL_JOINTS]
   assert obs[6] == "joint_pos/Left_Shoulder_Pitch"
 
@@ -203,9 +204,9 @@ def test_learner_sections_are_typed():
 
 
 def test_mirror_maps_are_involutions(stage_dict):
-  obs, priv, act = config.feature_names(stage_dict)
+  obs, priv, act = features.feature_names(stage_dict)
   for names, kind in ((obs, "obs"), (priv, "obs"), (act, "action")):
-    perm, sign = config.mirror_map(names, kind)
+    perm, sign = features.mirror_map(names, kind)
     assert sorted(perm.tolist()) == list(range(len(names)))
     np.testing.assert_array_equal(perm[perm], np.arange(len(names)))
     np.testing.assert_array_equal(sign[perm] * sign, np.ones(len(names)))
@@ -214,20 +215,20 @@ def test_mirror_maps_are_involutions(stage_dict):
 
 
 def test_mirror_map_examples():
-  obs, priv, act = config.feature_names(default_stage_dict("full"))
-  perm, sign = config.mirror_map(obs)
+  obs, priv, act = features.feature_names(default_stage_dict("full"))
+  perm, sign = features.mirror_map(obs)
   i = obs.index("joint_pos/Left_Hip_Roll")
   assert obs[perm[i]] == "joint_pos/Right_Hip_Roll" and sign[i] == -1
   i = obs.index("joint_vel/Left_Knee_Pitch")
   assert obs[perm[i]] == "joint_vel/Right_Knee_Pitch" and sign[i] == 1
   assert [sign[obs.index(f"gravity/{a}")] for a in "xyz"] == [1, -1, 1]
   assert [sign[obs.index(f"ang_vel/{a}")] for a in "xyz"] == [-1, 1, -1]
-  perm, sign = config.mirror_map(priv)
+  perm, sign = features.mirror_map(priv)
   i = priv.index("com_offset/Hip_Yaw_Left/y")
   assert priv[perm[i]] == "com_offset/Hip_Yaw_Right/y" and sign[i] == -1
   assert priv[perm[priv.index("contact/AL3")]] == "contact/AR3"
   assert [sign[priv.index(f"push_torque/{a}")] for a in "xyz"] == [-1, 1, -1]
   assert sign[priv.index("terrain/slope_y")] == -1 and sign[priv.index("terrain/slope_x")] == 1
-  perm, sign = config.mirror_map(act, "action")
+  perm, sign = features.mirror_map(act, "action")
   assert act[perm[act.index("Left_Elbow_Yaw")]] == "Right_Elbow_Yaw"
   assert sign[act.index("Left_Elbow_Yaw")] == -1

@@ -10,8 +10,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from jax_env import config, robot
-from jax_env.config import SCENARIOS, default_stage_dict
+from jax_env import features, names, robot
+from jax_env.defaults import default_stage_dict
+from jax_env.names import SCENARIOS
 from jax_env.env import FallRecoveryEnv
 from jax_env.kinematics import quat_to_mat
 from jax_env.physics import nominal_params
@@ -61,13 +62,13 @@ def _free_fall_state(env, reset_to, seed=0):
 def test_api_shapes_and_names(env, fns):
   reset, _, _ = fns
   s = reset(_keys(0), jnp.full((B,), -1, jnp.int32))
-  obs, priv, act = config.feature_names(env.stage)
+  obs, priv, act = features.feature_names(env.stage)
   assert env.obs_names == obs and env.privileged_names == priv and env.action_names == act
   assert s.obs.shape == (B, env.obs_size) and s.privileged.shape == (B, env.privileged_size)
   assert env.action_size == 12 and env.episode_steps == EPISODE_STEPS
   for name in ("reward", "done", "truncation", "control_active"):
     assert getattr(s, name).shape == (B,)
-  assert set(s.metrics) == {f"reward/{t}" for t in config.REWARD_TERMS} | {"standing"}
+  assert set(s.metrics) == {f"reward/{t}" for t in names.REWARD_TERMS} | {"standing"}
   assert {"success", "recovery_time", "return"} <= set(s.episode_metrics)
   for perm, sign, n in ((env.mirror.obs_perm, env.mirror.obs_sign, env.obs_size),
                         (env.mirror.privileged_perm, env.mirror.privileged_sign,

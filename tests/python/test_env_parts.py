@@ -14,8 +14,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from jax_env import config, kinematics, rewards, robot
-from jax_env.config import SCENARIOS, StageConfig, default_stage_dict
+from jax_env import config, kinematics, names, rewards, robot
+from jax_env.config import StageConfig
+from jax_env.defaults import default_stage_dict
+from jax_env.names import SCENARIOS
 from jax_env.randomization import (OBSTACLE_PARK, Pusher, Randomizer,
                                    constrained_model, delayed_ctrl, dampratio_to_restitution,
                                    restitution_to_dampratio, slope_gravity,
@@ -164,7 +166,7 @@ def test_key_state_resets_are_the_keyframes_with_noise(full_stage, model, random
   keys = jax.random.split(jax.random.PRNGKey(3), 6)
   draw = jax.tree_util.tree_map(lambda x: x[:, 0], jax.vmap(lambda k: rnd.draw(k, 1))(keys))
   init = jax.jit(sampler.sample)(keys, draw, jnp.arange(6, dtype=jnp.int32))
-  for i, name in enumerate(config.KSI_SCENARIOS):
+  for i, name in enumerate(names.KSI_SCENARIOS):
     key_qpos, _ = robot.keyframe(model, name)
     np.testing.assert_allclose(np.asarray(init.qpos[i, 7:]), key_qpos[7:], atol=1e-5)
     # Same tilt as the keyframe (only the heading is random).
@@ -249,7 +251,7 @@ def test_every_dr_parameter_changes_the_model_and_stays_in_range(randomizer, dra
   # Terrain: slopes up to slope_max_deg by tilting gravity, obstacles flagged.
   tilt = np.arccos(-p.gravity[:, 2] / np.linalg.norm(p.gravity, axis=-1))
   assert tilt.max() <= math.radians(10.0) + 1e-4 and tilt.max() > math.radians(5.0)
-  slope_envs = d.terrain == config.TERRAINS.index("slope")
+  slope_envs = d.terrain == names.TERRAINS.index("slope")
   assert np.all(tilt[~slope_envs] < 1e-6) and np.all(d.slope[~slope_envs] == 0)
   assert 0.2 < slope_envs.mean() < 0.4 and 0.03 < d.obstacle.mean() < 0.2
   np.testing.assert_allclose(np.linalg.norm(p.gravity, axis=-1), 9.81, rtol=1e-5)
@@ -492,7 +494,7 @@ def test_dof_pos_ref_applies_only_near_the_target_height():
 
 
 def test_shaping_scales_by_ctrl_dt_clips_at_zero_and_scales_penalties():
-  weights = {t: 0.0 for t in config.REWARD_TERMS} | {"survival": 1.0, "dof_vel": -1.0}
+  weights = {t: 0.0 for t in names.REWARD_TERMS} | {"survival": 1.0, "dof_vel": -1.0}
   qd = jnp.zeros((2, robot.NUM_JOINTS)).at[1, 0].set(3.0)  # env 1: penalty 9 > survival 1
   x = _quantities(2, qd=qd)
   plain, _ = rewards.compute(x, weights, GETUP_PARAMS)
@@ -511,7 +513,7 @@ def test_reward_weights_and_metrics():
   stage = StageConfig.from_dict(default_stage_dict("full"))
   x = _quantities(standing=jnp.array([True, False]))
   total, metrics = rewards.compute(x, stage.rewards, stage.reward_params)
-  assert set(metrics) == {f"reward/{t}" for t in config.REWARD_TERMS}
+  assert set(metrics) == {f"reward/{t}" for t in names.REWARD_TERMS}
   np.testing.assert_allclose(total, sum(metrics.values()), rtol=1e-6)
   np.testing.assert_allclose(metrics["reward/standing"], [stage.rewards["standing"], 0])
   zero = dict(stage.rewards, survival=0.0)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from jax_env import config as config_lib
-from jax_env.config import SCENARIOS, TERRAINS
+from jax_env import features, names
 from jax_env.env import FallRecoveryEnv
 from jax_env.evaluation import conditions as cond_lib
 from jax_env.evaluation import protocols, runner, stats
@@ -23,6 +23,7 @@ from jax_env.learner import checkpoint as ckpt_lib
 from jax_env.learner import networks as nets_lib
 from jax_env.learner import ppo as ppo_lib
 from jax_env.learner import train as train_lib
+from jax_env.names import SCENARIOS, TERRAINS
 from jax_env.paths import REPO_ROOT
 
 
@@ -145,11 +146,11 @@ def test_evaluation_stage_is_nominal_and_keeps_the_features():
   nominal = cond_lib.evaluation_stage(stage)
   assert stage["domain_randomization"]["enabled"]  # the input is not modified
   cfg = config_lib.StageConfig.from_dict(nominal)
-  assert all(cfg.domain_randomization.active(p) is None for p in config_lib.DR_PARAMS)
+  assert all(cfg.domain_randomization.active(p) is None for p in names.DR_PARAMS)
   assert not cfg.push.enabled and cfg.delay.max_s == 0.0
   assert cfg.terrain.weights == {"flat": 1.0, "slope": 0.0, "obstacle": 0.0}
   assert cfg.terrain.slope_max_deg == stage["terrain"]["slope_max_deg"]
-  assert config_lib.feature_names(nominal) == config_lib.feature_names(stage)
+  assert features.feature_names(nominal) == features.feature_names(stage)
   assert nominal["sim"] == stage["sim"] and nominal["action"] == stage["action"]
   assert nominal["constraints"] == stage["constraints"]
   flat = copy.deepcopy(stage)

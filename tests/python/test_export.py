@@ -19,7 +19,7 @@ import onnxruntime as ort
 import pytest
 import safetensors.numpy
 
-from jax_env import config as config_lib
+from jax_env import defaults, features
 from jax_env import export as export_lib
 from jax_env import facade
 from jax_env import robot
@@ -29,7 +29,7 @@ from jax_env.learner import ppo as ppo_lib
 
 
 def _stage(kind, *, rma, history_len, hidden, activation, mapping):
-  s = copy.deepcopy(config_lib.default_stage_dict(kind))
+  s = copy.deepcopy(defaults.default_stage_dict(kind))
   s["ppo"].update(policy_hidden=list(hidden), value_hidden=[16], activation=activation)
   s["rma"].update(enabled=rma, latent_dim=8, encoder_hidden=[16], history_len=history_len)
   s["action"]["mapping"] = mapping
@@ -39,7 +39,7 @@ def _stage(kind, *, rma, history_len, hidden, activation, mapping):
 def _checkpoint(path, stage, *, seed, with_stage_config=True, adaptation_env_steps=4096):
   """A checkpoint of `stage`'s layout with non-trivial weights and statistics, whose learner
   section records `adaptation_env_steps` of RMA adaptation (None: no learner section)."""
-  obs_names, priv_names, act_names = config_lib.feature_names(stage)
+  obs_names, priv_names, act_names = features.feature_names(stage)
   p, r = stage["ppo"], stage["rma"]
   config = nets_lib.NetworkConfig(
       obs_size=len(obs_names), privileged_size=len(priv_names), action_size=len(act_names),

@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 
 from jax_env import config, robot
-from jax_env.config import SCENARIOS, StageConfig, default_stage_dict
+from jax_env.config import StageConfig
+from jax_env.defaults import default_stage_dict
+from jax_env.names import SCENARIOS
 from jax_env.env import FallRecoveryEnv
 from jax_env.kinematics import axis_angle_quat
 from jax_env.learner import monitor as monitor_lib

@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from jax_env import config as config_lib
+from jax_env import defaults
 from jax_env import facade
 from jax_env.learner import checkpoint as ckpt_lib
 
 
 def _tiny_stage():
-  s = copy.deepcopy(config_lib.default_stage_dict("planar"))
+  s = copy.deepcopy(defaults.default_stage_dict("planar"))
   s["sim"]["episode_s"] = 0.4
   s["scenario_params"]["settle_s"] = 0.04
   s["ppo"].update(num_envs=8, unroll_length=4, num_minibatches=2, update_epochs=1,

@@ -13,7 +13,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from jax_env import config as config_lib
+from jax_env import defaults, features
 from jax_env import robot
 from jax_env.evaluation import plain_mujoco as pm
 
@@ -24,7 +24,7 @@ def _zero_actor(path, *, mapping="default", ctrl_dt=0.02, scale=1.0, clip=1.0,
                 extra_props=None):
   """An ONNX file with export.py's interface and metadata whose `action` is zero (it still
   reads obs and history: 0 · x), and whose `joint_target` applies the mapping."""
-  obs_names, _, action_names = config_lib.feature_names(config_lib.default_stage_dict("full"))
+  obs_names, _, action_names = features.feature_names(defaults.default_stage_dict("full"))
   n_obs, n_act = len(obs_names), len(action_names)
   stand = robot.stand_pose()
   q_stand = np.array([stand[robot.JOINT_NAMES.index(a)] for a in action_names], np.float32)

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from jax_env import config as config_lib
+from jax_env import defaults, features
 from jax_env import facade
 from jax_env import rewards as rewards_lib
 from jax_env import robot
@@ -33,7 +34,7 @@ PUSH_N = 100.0
 
 
 def _stage():
-  s = copy.deepcopy(config_lib.default_stage_dict("planar"))
+  s = copy.deepcopy(defaults.default_stage_dict("planar"))
   s["sim"]["episode_s"] = 0.4
   s["scenario_params"]["settle_s"] = 0.04
   s["ppo"].update(num_envs=8, policy_hidden=[16, 16], value_hidden=[16, 16])
@@ -44,7 +45,7 @@ def _stage():
 def _fresh_checkpoint(path, stage_dict):
   stage = config_lib.StageConfig.from_dict(stage_dict)
   learner = train.LearnerConfig.from_stage(stage)
-  obs, priv, act = config_lib.feature_names(stage)
+  obs, priv, act = features.feature_names(stage)
   sizes = types.SimpleNamespace(obs_size=len(obs), privileged_size=len(priv),
                                 action_size=len(act))
   net_cfg = learner.network_config(sizes)

@@ -10,7 +10,8 @@ use anyhow::{Context, Result};
 use serde_json::{json, Value};
 
 use crate::cli::ActArgs;
-use crate::commands::{python_failure, setup};
+use crate::commands::facade::python_failure;
+use crate::commands::setup;
 use crate::{bad_input, checkpoint, paths};
 
 pub fn run(args: &ActArgs) -> Result<()> {

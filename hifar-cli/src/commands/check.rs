@@ -1,10 +1,10 @@
 //! `hifar check`: validate a curriculum without training.
 //!
-//! The Rust side (`curriculum::load`) checks syntax, keys, types and ranges; the Python side
-//! (`facade.check_stage`) checks the names it owns (joints, scenarios, keyframes, reward
-//! terms, randomization parameters) and the ranges and meaning of the optional tables Rust
-//! types only for their keys (`reward_shaping`, `termination`, `monitor`). Python answers with key paths inside a stage; they are
-//! mapped back to `FILE:LINE:COL` here, so both kinds of error read the same.
+//! The Rust side (`curriculum::load`) checks syntax, keys, types, ranges and names (against the
+//! vocabularies jax_env exports, `crate::names`); the Python side (`facade.check_stage`) checks
+//! the stage's meaning, including the ranges of the optional tables Rust types only for their
+//! keys (`reward_shaping`, `termination`, `monitor`). Python answers with key paths inside a
+//! stage; they are mapped back to `FILE:LINE:COL` here, so both kinds of error read the same.
 
 use std::path::Path;
 
@@ -12,7 +12,9 @@ use anyhow::{anyhow, Result};
 use serde_json::Value;
 
 use crate::cli::CheckArgs;
-use crate::commands::{python_failure, runs::group_digits, setup};
+use crate::commands::facade::python_failure;
+use crate::commands::setup;
+use crate::ui::group_digits;
 use crate::curriculum::{self, Curriculum};
 use crate::python::Facade;
 use crate::{bad_input, paths};
@@ -55,9 +57,8 @@ pub fn stage_index(curriculum: &Curriculum, name: &str, file: &Path) -> Result<u
     })
 }
 
-/// Python's name checks for the given stages (all when `None`), each problem reported as
-/// `FILE:LINE:COL: message`; then a cross-check that Rust and Python agree on every stage's
-/// feature names (expansion depends on it).
+/// Python's checks of the given stages (all when `None`), each problem reported as
+/// `FILE:LINE:COL: message`.
 pub fn check_with_python(facade: &Facade, curriculum: &Curriculum, stages: Option<&[usize]>) -> Result<()> {
     let all: Vec<usize> = (0..curriculum.stages().len()).collect();
     let stages = stages.unwrap_or(&all);
@@ -82,32 +83,6 @@ pub fn check_with_python(facade: &Facade, curriculum: &Curriculum, stages: Optio
     }
     if !problems.is_empty() {
         return Err(bad_input!("{}", problems.join("\n")));
-    }
-    for &index in stages {
-        let stage = &curriculum.stages()[index];
-        let python = facade
-            .call("feature_names", &[stage.to_json()])
-            .map_err(|err| python_failure(&format!("facade.feature_names failed on stage {}", stage.name()), err, &log))?;
-        let rust = curriculum::feature_names(stage);
-        for (key, names) in [
-            ("obs_names", &rust.obs_names),
-            ("privileged_names", &rust.privileged_names),
-            ("action_names", &rust.action_names),
-        ] {
-            let theirs: Vec<&str> = python
-                .get(key)
-                .and_then(Value::as_array)
-                .map(|list| list.iter().filter_map(Value::as_str).collect())
-                .unwrap_or_default();
-            if theirs != names.iter().map(String::as_str).collect::<Vec<_>>() {
-                return Err(anyhow!(
-                    "stage {}: Rust and Python disagree on {key} ({} vs {} names); hifar and jax_env are out of sync",
-                    stage.name(),
-                    names.len(),
-                    theirs.len()
-                ));
-            }
-        }
     }
     Ok(())
 }

@@ -17,7 +17,8 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use serde_json::{json, Value};
 
 use crate::cli::EvalArgs;
-use crate::commands::{default_backend, python_failure, setup, target};
+use crate::commands::facade::{default_backend, python_failure};
+use crate::commands::{setup, target};
 use crate::error::Interrupted;
 use crate::terminal::{self, Capture};
 use crate::{bad_input, paths};

@@ -12,7 +12,9 @@ use serde_json::{json, Value};
 
 use crate::checkpoint::CheckpointMeta;
 use crate::cli::ExportArgs;
-use crate::commands::{python_failure, setup, target, Status};
+use crate::commands::facade::python_failure;
+use crate::commands::{setup, target};
+use crate::ui::Status;
 use crate::{bad_input, paths};
 
 /// Largest accepted difference between onnxruntime and the JAX actor (docs/contracts.md).

@@ -13,7 +13,9 @@ use anyhow::{Context, Result};
 use serde_json::{json, Value};
 
 use crate::cli::ReportArgs;
-use crate::commands::{python_failure, setup, Status};
+use crate::commands::facade::python_failure;
+use crate::commands::setup;
+use crate::ui::Status;
 use crate::run_dir::{Manifest, MANIFEST};
 use crate::{bad_input, paths};
 

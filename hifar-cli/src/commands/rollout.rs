@@ -14,12 +14,12 @@ use serde_json::{json, Value};
 
 use crate::cli::RolloutArgs;
 use crate::commands::target::{self, PolicyTarget};
-use crate::commands::{default_backend, python_failure, setup, Status};
+use crate::commands::facade::{default_backend, python_failure};
+use crate::commands::setup;
+use crate::ui::Status;
 use crate::recording::{self, Recording};
-use crate::{bad_input, paths, robot};
-
-/// Torso-frame push directions (docs/contracts.md, "Nominal conditions").
-pub const PUSH_DIRECTIONS: [&str; 4] = ["forward", "backward", "left", "right"];
+use crate::names::names;
+use crate::{bad_input, paths};
 
 /// A checked `hifar rollout` invocation.
 #[derive(Debug)]
@@ -74,10 +74,10 @@ fn number(stage: &Value, table: &str, key: &str) -> Option<f64> {
 
 impl Plan {
     fn new(args: &RolloutArgs) -> Result<Plan> {
-        one_of("scenario", &args.scenario, &robot::SCENARIOS)?;
-        one_of("terrain", &args.terrain, &robot::TERRAINS)?;
+        one_of("scenario", &args.scenario, &names().scenarios)?;
+        one_of("terrain", &args.terrain, &names().terrains)?;
         if let Some(direction) = &args.push_direction {
-            one_of("push direction", direction, &PUSH_DIRECTIONS)?;
+            one_of("push direction", direction, &names().push_directions)?;
         }
         if let Some(force) = args.push_force {
             if !(force.is_finite() && force >= 0.0) {

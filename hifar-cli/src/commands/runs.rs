@@ -10,6 +10,7 @@ use crate::bad_input;
 use crate::cli::{RunsArgs, RunsCommand};
 use crate::metrics::{monitor_mean_stand_rate, read_jsonl};
 use crate::run_dir::{Manifest, METRICS};
+use crate::ui::group_digits;
 
 pub fn run(args: &RunsArgs) -> Result<()> {
     match &args.command {
@@ -186,27 +187,4 @@ fn rate(rate: Option<f64>) -> String {
 /// "2025-01-02T03:04:05.123Z" -> "2025-01-02 03:04:05".
 fn short_time(rfc3339: &str) -> String {
     rfc3339.get(..19).map(|t| t.replace('T', " ")).unwrap_or_else(|| rfc3339.to_owned())
-}
-
-/// 1234567 -> "1,234,567".
-pub fn group_digits(n: u64) -> String {
-    let digits = n.to_string();
-    let mut out = String::new();
-    for (i, c) in digits.chars().enumerate() {
-        if i > 0 && (digits.len() - i).is_multiple_of(3) {
-            out.push(',');
-        }
-        out.push(c);
-    }
-    out
-}
-
-#[cfg(test)]
-mod tests {
-    #[test]
-    fn groups_digits() {
-        assert_eq!(super::group_digits(0), "0");
-        assert_eq!(super::group_digits(999), "999");
-        assert_eq!(super::group_digits(1_234_567), "1,234,567");
-    }
 }

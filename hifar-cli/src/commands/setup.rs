@@ -14,7 +14,7 @@ use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 
 use crate::cli::SetupArgs;
-use crate::commands::Status;
+use crate::ui::Status;
 use crate::paths;
 use crate::python::{self, BaseInfo, Facade};
 

@@ -1,13 +1,12 @@
 //! Feature names of a stage (docs/contracts.md, "Feature names").
 //!
-//! A pure function of the stage's joint lists. The Python environment builds the same lists
-//! (`jax_env.config.feature_names`); checkpoint expansion maps tensor rows and columns by these
-//! names, so `hifar check` and `hifar train` compare both sides before training.
+//! Expanded from the feature layout jax_env exports (`crate::names`, jax_env/features.py), with
+//! the stage's joint lists; checkpoint expansion maps tensor rows and columns by these names.
 
 use serde::{Deserialize, Serialize};
 
 use super::Stage;
-use crate::robot::{BODY_NAMES, CONTACT_BODIES, JOINT_NAMES};
+use crate::names::{names, JointList, Labels};
 
 /// The three ordered name lists that give every observation, privileged-observation and action
 /// index a meaning.
@@ -51,7 +50,7 @@ impl FeatureNames {
 
 /// `joints` in canonical order, whatever order the curriculum lists them in.
 fn canonical<'a>(joints: &'a [String]) -> impl Iterator<Item = &'static str> + 'a {
-    JOINT_NAMES.iter().copied().filter(move |j| joints.iter().any(|x| x == j))
+    names().joints.iter().copied().filter(move |j| joints.iter().any(|x| x == j))
 }
 
 /// The feature names of a stage.
@@ -61,42 +60,48 @@ pub fn feature_names(stage: &Stage) -> FeatureNames {
 
 /// The feature names for the given controlled and observed joints.
 pub fn joint_feature_names(controlled: &[String], observed: &[String]) -> FeatureNames {
-    let mut obs: Vec<String> = ["gravity/x", "gravity/y", "gravity/z", "ang_vel/x", "ang_vel/y", "ang_vel/z"]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-    obs.extend(canonical(observed).map(|j| format!("joint_pos/{j}")));
-    obs.extend(canonical(observed).map(|j| format!("joint_vel/{j}")));
-    obs.extend(canonical(controlled).map(|j| format!("prev_action/{j}")));
+    let joints = |list: JointList| match list {
+        JointList::ControlledJoints => controlled,
+        JointList::ObservedJoints => observed,
+    };
+    let layout = &names().features;
+    let mut obs = Vec::new();
+    for segment in &layout.obs {
+        let prefix = segment.prefix;
+        match &segment.labels {
+            None => obs.push(prefix.to_owned()),
+            Some(Labels::Fixed(labels)) => obs.extend(labels.iter().map(|l| format!("{prefix}/{l}"))),
+            Some(Labels::Joints(list)) => obs.extend(canonical(joints(*list)).map(|j| format!("{prefix}/{j}"))),
+        }
+    }
     FeatureNames {
         obs_names: obs,
         privileged_names: privileged_names(),
-        action_names: canonical(controlled).map(str::to_owned).collect(),
+        action_names: canonical(joints(layout.action)).map(str::to_owned).collect(),
     }
 }
 
 /// The privileged (critic / RMA encoder) inputs: the same in every stage.
 pub fn privileged_names() -> Vec<String> {
-    let mut names: Vec<String> = vec!["friction".into(), "compliance".into(), "restitution".into()];
-    names.extend(BODY_NAMES.iter().map(|b| format!("mass_scale/{b}")));
-    for b in BODY_NAMES {
-        names.extend(["x", "y", "z"].iter().map(|a| format!("com_offset/{b}/{a}")));
-    }
-    names.extend(JOINT_NAMES.iter().map(|j| format!("kp_scale/{j}")));
-    names.extend(JOINT_NAMES.iter().map(|j| format!("kd_scale/{j}")));
-    names.extend(["torque_limit_scale", "delay"].map(String::from));
-    names.extend(["base_height", "base_lin_vel/x", "base_lin_vel/y", "base_lin_vel/z"].map(String::from));
-    names.extend(CONTACT_BODIES.iter().map(|b| format!("contact/{b}")));
-    names.extend(["x", "y", "z"].iter().map(|a| format!("push_force/{a}")));
-    names.extend(["x", "y", "z"].iter().map(|a| format!("push_torque/{a}")));
-    names.extend(["terrain/slope_x", "terrain/slope_y", "terrain/obstacle"].map(String::from));
-    names
+    names().features.privileged.iter().map(|s| s.to_string()).collect()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::robot::{LATERAL_JOINTS, SAGITTAL_JOINTS};
+
+    const SAGITTAL_JOINTS: [&str; 10] = [
+        "Left_Shoulder_Pitch",
+        "Left_Elbow_Yaw",
+        "Right_Shoulder_Pitch",
+        "Right_Elbow_Yaw",
+        "Left_Hip_Pitch",
+        "Left_Knee_Pitch",
+        "Left_Ankle_Pitch",
+        "Right_Hip_Pitch",
+        "Right_Knee_Pitch",
+        "Right_Ankle_Pitch",
+    ];
 
     fn strings(names: &[&str]) -> Vec<String> {
         names.iter().map(|s| s.to_string()).collect()
@@ -128,12 +133,13 @@ mod tests {
 
     #[test]
     fn observed_and_controlled_differ() {
-        let controlled: Vec<String> = JOINT_NAMES
+        let controlled: Vec<String> = names()
+            .joints
             .iter()
-            .filter(|j| SAGITTAL_JOINTS.contains(j) || LATERAL_JOINTS.contains(j))
+            .filter(|j| SAGITTAL_JOINTS.contains(j) || j.ends_with("_Hip_Roll"))
             .map(|s| s.to_string())
             .collect();
-        let observed = strings(&JOINT_NAMES);
+        let observed = strings(&names().joints);
         let f = joint_feature_names(&controlled, &observed);
         assert_eq!(f.obs_names.len(), 6 + 23 + 23 + 12);
         assert_eq!(f.action_names.len(), 12);

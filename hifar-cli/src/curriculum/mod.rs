@@ -214,7 +214,7 @@ fn explain(spans: &SpanNode, span: &Range<usize>, message: &str) -> String {
                 if table.last() == Some(&PathSegment::from("scenarios")) && name.starts_with("`ksi_") {
                     text.push_str(&format!(
                         " (key-state scenarios are named after the model's keyframes: {})",
-                        crate::robot::KEYFRAMES.iter().filter(|k| k.starts_with("ksi_")).copied().collect::<Vec<_>>().join(", ")
+                        crate::names::names().keyframes.iter().filter(|k| k.starts_with("ksi_")).copied().collect::<Vec<_>>().join(", ")
                     ));
                 }
                 text
@@ -264,17 +264,8 @@ impl Curriculum {
         &self.path
     }
 
-    /// The file's text as it was read.
-    pub fn text(&self) -> &str {
-        &self.text
-    }
-
     pub fn name(&self) -> &str {
         &self.file.name
-    }
-
-    pub fn description(&self) -> Option<&str> {
-        self.file.description.as_deref()
     }
 
     pub fn seed(&self) -> u64 {
@@ -288,11 +279,6 @@ impl Curriculum {
 
     pub fn stages(&self) -> &[Stage] {
         &self.file.stage
-    }
-
-    /// The typed file (overrides applied).
-    pub fn file(&self) -> &CurriculumFile {
-        &self.file
     }
 
     /// Index of the stage whose final checkpoint initialises stage `index` (None: fresh).

@@ -1,8 +1,9 @@
 //! The curriculum TOML as typed structs (docs/contracts.md, "Curriculum TOML", schema 1).
 //!
 //! Every struct denies unknown keys, so a typo is an error with the key's position rather than
-//! a silently ignored setting. Closed vocabularies (backends, mappings, scenario and reward
-//! names, …) are enums, so a wrong name is reported by the deserializer with the valid ones.
+//! a silently ignored setting. Names from closed vocabularies (scenarios, reward terms, DR
+//! parameters, mappings, …) are [`Name`]s of the lists jax_env exports (`crate::names`), so a
+//! wrong name is reported by the deserializer with the valid ones, as for an enum.
 //! Serialization gives back exactly the keys of the file (optional keys that were absent stay
 //! absent), which is the stage table Python receives.
 //!
@@ -13,97 +14,44 @@
 //! `hifar check` and `hifar train` map back to `FILE:LINE:COL`.
 
 use std::collections::BTreeMap;
+use std::fmt;
+use std::marker::PhantomData;
+use std::sync::LazyLock;
 
-use serde::{Deserialize, Serialize};
+use serde::de::{DeserializeSeed, MapAccess, Visitor};
+use serde::ser::SerializeMap;
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+pub use crate::names::{
+    Activation, DrDistribution, DrOperation, DrParameter, LrSchedule, Mapping, OnMiss, RewardTerm, Scenario, ScheduleBy, Terrain,
+};
+use crate::names::{DrParameters, Name, Terrains, Vocabulary};
 
 /// The version this build reads.
 pub const SCHEMA_VERSION: i64 = 1;
 
-/// Declares a unit enum of snake_case names with `as_str` and the list of all variants.
-macro_rules! names {
-    ($(#[$meta:meta])* $name:ident { $($variant:ident = $text:literal),+ $(,)? }) => {
-        $(#[$meta])*
-        #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
-        pub enum $name {
-            $(#[serde(rename = $text)] $variant),+
-        }
-
-        impl $name {
-            pub const ALL: &'static [$name] = &[$($name::$variant),+];
-
-            pub fn as_str(self) -> &'static str {
-                match self {
-                    $($name::$variant => $text),+
-                }
-            }
-        }
-
-        impl std::fmt::Display for $name {
-            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-                f.write_str(self.as_str())
-            }
-        }
-    };
+/// Physics backend; `auto` lets `facade.doctor()` choose (MJX on an accelerator).
+///
+/// A setting of the experiment, not of a stage: the CLI resolves `auto` before Python sees it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Backend {
+    Auto,
+    Mjx,
+    Native,
 }
 
-names!(
-    /// Physics backend; `auto` lets `facade.doctor()` choose (MJX on an accelerator).
-    Backend { Auto = "auto", Mjx = "mjx", Native = "native" }
-);
-names!(
-    /// `current`: target = q + scale·a; `default`: target = q_stand + scale·a.
-    Mapping { Current = "current", Default = "default" }
-);
-names!(LrSchedule { Fixed = "fixed", AdaptiveKl = "adaptive_kl" });
-names!(Activation { Elu = "elu", Swish = "swish", Tanh = "tanh", Relu = "relu" });
-names!(OnMiss { Stop = "stop", Continue = "continue" });
-names!(DrOperation { Additive = "additive", Scaling = "scaling" });
-names!(DrDistribution { Gaussian = "gaussian", Uniform = "uniform" });
-names!(
-    /// Initial-state scenarios (robot::SCENARIOS); `ksi_*` start at the keyframe of that name.
-    Scenario {
-        KsiProne1 = "ksi_prone_1",
-        KsiProne2 = "ksi_prone_2",
-        KsiProne3 = "ksi_prone_3",
-        KsiSupine1 = "ksi_supine_1",
-        KsiSupine2 = "ksi_supine_2",
-        KsiSupine3 = "ksi_supine_3",
-        Supine = "supine",
-        Prone = "prone",
-        Lateral = "lateral",
-        Sitting = "sitting",
-        CrossedLegs = "crossed_legs",
-        RandomDrop = "random_drop",
-        Stand = "stand",
-        Squat = "squat",
+impl Backend {
+    pub const ALL: &'static [Backend] = &[Backend::Auto, Backend::Mjx, Backend::Native];
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Backend::Auto => "auto",
+            Backend::Mjx => "mjx",
+            Backend::Native => "native",
+        }
     }
-);
-names!(
-    /// Reward terms of the paper's reward table (robot::REWARD_TERMS).
-    RewardTerm {
-        Survival = "survival",
-        BaseHeight = "base_height",
-        Standing = "standing",
-        Orientation = "orientation",
-        DofPosRef = "dof_pos_ref",
-        Torques = "torques",
-        DofVel = "dof_vel",
-        DofAcc = "dof_acc",
-        RootAcc = "root_acc",
-        ActionRate = "action_rate",
-        DofPosLimits = "dof_pos_limits",
-        TorqueFatigue = "torque_fatigue",
-        Power = "power",
-        HipRoll = "hip_roll",
-        TrunkHeight = "trunk_height",
-        WaistHeight = "waist_height",
-        Upright = "upright",
-    }
-);
-names!(
-    /// What a penalty schedule's `points` are indexed by.
-    ScheduleBy { EnvSteps = "env_steps", StandRate = "stand_rate" }
-);
+}
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -136,7 +84,7 @@ pub struct StageTable {
     pub constraints: Constraints,
     pub scenarios: BTreeMap<Scenario, f64>,
     pub scenario_params: ScenarioParams,
-    pub terrain: Terrain,
+    pub terrain: TerrainTable,
     pub rewards: BTreeMap<RewardTerm, f64>,
     pub reward_params: RewardParams,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -186,26 +134,39 @@ pub struct ScenarioParams {
     pub settle_s: f64,
 }
 
-/// Terrain mixture weights (omitted terrains weigh 0) and the slope range.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Terrain {
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub flat: Option<f64>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub slope: Option<f64>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub obstacle: Option<f64>,
+/// `[stage.terrain]`: terrain mixture weights (omitted terrains weigh 0) and the slope range.
+#[derive(Debug, Clone)]
+pub struct TerrainTable {
+    pub weights: BTreeMap<Terrain, f64>,
     pub slope_max_deg: f64,
 }
 
-impl Terrain {
-    /// (name, weight) of the terrains the file sets, in robot::TERRAINS order.
+const SLOPE_MAX_DEG: &str = "slope_max_deg";
+static TERRAIN_KEYS: LazyLock<Vec<&'static str>> =
+    LazyLock::new(|| [Terrains::names(), &[SLOPE_MAX_DEG]].concat());
+
+impl TerrainTable {
+    /// (name, weight) of the terrains the file sets, in vocabulary order.
     pub fn weights(&self) -> Vec<(&'static str, f64)> {
-        [("flat", self.flat), ("slope", self.slope), ("obstacle", self.obstacle)]
-            .into_iter()
-            .filter_map(|(name, w)| w.map(|w| (name, w)))
-            .collect()
+        self.weights.iter().map(|(name, w)| (name.as_str(), *w)).collect()
+    }
+}
+
+impl Serialize for TerrainTable {
+    fn serialize<S: Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        let mut map = serializer.serialize_map(Some(self.weights.len() + 1))?;
+        for (name, weight) in &self.weights {
+            map.serialize_entry(name, weight)?;
+        }
+        map.serialize_entry(SLOPE_MAX_DEG, &self.slope_max_deg)?;
+        map.end()
+    }
+}
+
+impl<'de> Deserialize<'de> for TerrainTable {
+    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        let (weights, slope_max_deg) = deserializer.deserialize_map(NamedTable::new(SLOPE_MAX_DEG, &TERRAIN_KEYS))?;
+        Ok(TerrainTable { weights, slope_max_deg })
     }
 }
 
@@ -318,57 +279,107 @@ pub struct DrParam {
     pub distribution: DrDistribution,
 }
 
-/// `enabled` plus any subset of the DR parameters (robot::DR_PARAMETERS).
-#[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+/// `[stage.domain_randomization]`: `enabled` plus any subset of the DR parameters.
+#[derive(Debug, Clone)]
 pub struct DomainRandomization {
     pub enabled: bool,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub dof_position: Option<DrParam>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub base_xy_position: Option<DrParam>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub base_linear_velocity: Option<DrParam>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub joint_stiffness: Option<DrParam>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub joint_damping: Option<DrParam>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub terrain_friction: Option<DrParam>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub terrain_compliance: Option<DrParam>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub terrain_restitution: Option<DrParam>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub torso_com: Option<DrParam>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub torso_mass: Option<DrParam>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub other_com: Option<DrParam>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub other_mass: Option<DrParam>,
+    pub params: BTreeMap<DrParameter, DrParam>,
 }
 
+const ENABLED: &str = "enabled";
+static DR_KEYS: LazyLock<Vec<&'static str>> =
+    LazyLock::new(|| [&[ENABLED], DrParameters::names()].concat());
+
 impl DomainRandomization {
-    /// The parameters the file sets, in robot::DR_PARAMETERS order.
+    /// The parameters the file sets, in vocabulary order.
     pub fn params(&self) -> Vec<(&'static str, &DrParam)> {
-        [
-            ("dof_position", &self.dof_position),
-            ("base_xy_position", &self.base_xy_position),
-            ("base_linear_velocity", &self.base_linear_velocity),
-            ("joint_stiffness", &self.joint_stiffness),
-            ("joint_damping", &self.joint_damping),
-            ("terrain_friction", &self.terrain_friction),
-            ("terrain_compliance", &self.terrain_compliance),
-            ("terrain_restitution", &self.terrain_restitution),
-            ("torso_com", &self.torso_com),
-            ("torso_mass", &self.torso_mass),
-            ("other_com", &self.other_com),
-            ("other_mass", &self.other_mass),
-        ]
-        .into_iter()
-        .filter_map(|(name, p)| p.as_ref().map(|p| (name, p)))
-        .collect()
+        self.params.iter().map(|(name, p)| (name.as_str(), p)).collect()
+    }
+}
+
+impl Serialize for DomainRandomization {
+    fn serialize<S: Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        let mut map = serializer.serialize_map(Some(self.params.len() + 1))?;
+        map.serialize_entry(ENABLED, &self.enabled)?;
+        for (name, param) in &self.params {
+            map.serialize_entry(name, param)?;
+        }
+        map.end()
+    }
+}
+
+impl<'de> Deserialize<'de> for DomainRandomization {
+    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        let (params, enabled) = deserializer.deserialize_map(NamedTable::new(ENABLED, &DR_KEYS))?;
+        Ok(DomainRandomization { enabled, params })
+    }
+}
+
+/// Reads a table whose keys are names of a vocabulary, each optional, plus one required key of
+/// the table's own (`slope_max_deg`, `enabled`), as a derived struct with `deny_unknown_fields`
+/// would: an unknown key fails at the key with the valid `keys`, a missing own key at the table.
+struct NamedTable<V, T, X> {
+    own: &'static str,
+    keys: &'static [&'static str],
+    values: PhantomData<(V, T, X)>,
+}
+
+impl<V, T, X> NamedTable<V, T, X> {
+    fn new(own: &'static str, keys: &'static [&'static str]) -> Self {
+        NamedTable { own, keys, values: PhantomData }
+    }
+}
+
+impl<'de, V: Vocabulary, T: Deserialize<'de>, X: Deserialize<'de>> Visitor<'de> for NamedTable<V, T, X> {
+    type Value = (BTreeMap<Name<V>, T>, X);
+
+    fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("a map")
+    }
+
+    fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<Self::Value, A::Error> {
+        let mut named = BTreeMap::new();
+        let mut own = None;
+        while let Some(key) = map.next_key_seed(TableKey::<V> { own: self.own, keys: self.keys, vocabulary: PhantomData })? {
+            match key {
+                Some(name) => {
+                    named.insert(name, map.next_value()?);
+                }
+                None => own = Some(map.next_value()?),
+            }
+        }
+        let own = own.ok_or_else(|| serde::de::Error::missing_field(self.own))?;
+        Ok((named, own))
+    }
+}
+
+/// A key of a [`NamedTable`]: a name of the vocabulary, or None for the table's own key.
+struct TableKey<V> {
+    own: &'static str,
+    keys: &'static [&'static str],
+    vocabulary: PhantomData<V>,
+}
+
+impl<'de, V: Vocabulary> DeserializeSeed<'de> for TableKey<V> {
+    type Value = Option<Name<V>>;
+
+    fn deserialize<D: Deserializer<'de>>(self, deserializer: D) -> Result<Self::Value, D::Error> {
+        deserializer.deserialize_str(self)
+    }
+}
+
+impl<V: Vocabulary> Visitor<'_> for TableKey<V> {
+    type Value = Option<Name<V>>;
+
+    fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("a key")
+    }
+
+    fn visit_str<E: serde::de::Error>(self, key: &str) -> Result<Self::Value, E> {
+        if key == self.own {
+            return Ok(None);
+        }
+        Name::parse(key).map(Some).ok_or_else(|| E::unknown_field(key, self.keys))
     }
 }
 
@@ -446,6 +457,6 @@ pub struct Advance {
 impl Advance {
     /// Whether a stage that misses `min_stand_rate` within its budget lets the run go on.
     pub fn on_miss_continue(&self) -> bool {
-        self.on_miss == OnMiss::Continue
+        self.on_miss.is("continue")
     }
 }

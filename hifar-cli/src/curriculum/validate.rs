@@ -7,9 +7,9 @@
 
 use std::collections::HashSet;
 
-use super::schema::{CurriculumFile, DrDistribution, StageTable};
+use super::schema::{CurriculumFile, StageTable};
 use super::span::{PathSegment, Target};
-use crate::robot::{self, JOINT_NAMES};
+use crate::names::{self, names};
 
 /// Tolerance on mixture weights summing to 1 (docs/contracts.md).
 pub const SUM_TOLERANCE: f64 = 1e-6;
@@ -293,8 +293,8 @@ impl Check<'_, '_> {
         for (i, joint) in joints.iter().enumerate() {
             let mut path = (self.p)(&[key]);
             path.push(PathSegment::Index(i));
-            if robot::joint_index(joint).is_none() {
-                self.f.push(path, Target::Value, format!("unknown joint {joint:?}; valid joints: {}", JOINT_NAMES.join(", ")));
+            if names::joint_index(joint).is_none() {
+                self.f.push(path, Target::Value, format!("unknown joint {joint:?}; valid joints: {}", names().joints.join(", ")));
                 ok = false;
             } else if !seen.insert(joint.as_str()) {
                 self.f.push(path, Target::Value, format!("joint {joint:?} is listed twice in {key}"));
@@ -307,7 +307,7 @@ impl Check<'_, '_> {
         // The mirror loss permutes features within a list, so lists must be left/right symmetric.
         let missing: Vec<String> = joints
             .iter()
-            .filter_map(|j| robot::mirror_joint(j).filter(|m| !seen.contains(m)).map(|m| format!("{m} (mirror of {j})")))
+            .filter_map(|j| names::mirror_joint(j).filter(|m| !seen.contains(m)).map(|m| format!("{m} (mirror of {j})")))
             .collect();
         if !missing.is_empty() {
             self.err_key(&[key], format!("{key} must be left/right symmetric for the mirror loss; missing {}", missing.join(", ")));
@@ -413,16 +413,16 @@ fn validate_stage(f: &mut Findings, s: &StageTable, p: &dyn Fn(&[&str]) -> Vec<P
             c.err(&["domain_randomization", name, "range"], format!("{name}.range = [{a}, {b}] must hold finite numbers"));
             continue;
         }
-        match param.distribution {
-            DrDistribution::Uniform if a > b => c.err(
+        if param.distribution.is("uniform") && a > b {
+            c.err(
                 &["domain_randomization", name, "range"],
                 format!("{name}.range = [{a}, {b}]: min {a} > max {b} (uniform ranges are [low, high])"),
-            ),
-            DrDistribution::Gaussian if b < 0.0 => c.err(
+            );
+        } else if param.distribution.is("gaussian") && b < 0.0 {
+            c.err(
                 &["domain_randomization", name, "range"],
                 format!("{name}.range = [{a}, {b}]: gaussian ranges are [mean, std] and std {b} must be >= 0"),
-            ),
-            _ => {}
+            );
         }
     }
 

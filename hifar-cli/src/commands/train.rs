@@ -18,7 +18,9 @@ use serde_json::{json, Map, Value};
 
 use crate::checkpoint;
 use crate::cli::TrainArgs;
-use crate::commands::{check, python_failure, runs::group_digits, setup};
+use crate::commands::facade::python_failure;
+use crate::commands::{check, setup};
+use crate::ui::group_digits;
 use crate::curriculum::{self, Curriculum};
 use crate::error::{BadInput, Interrupted};
 use crate::metrics::{self, EventWriter, MetricsLog};

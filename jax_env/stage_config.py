@@ -1,0 +1,260 @@
+"""The typed shape of one curriculum stage: frozen dataclasses, and the closed vocabularies of
+the stage table's enumerated settings.
+
+`jax_env.config` builds these from the stage table the Rust CLI sends (checking every value);
+the environment and the learner read them, and never look up string keys at run time. The
+names of things the stage *selects* (joints, scenarios, terrains, reward terms, DR parameters)
+belong to the modules that implement them and are gathered in `jax_env.names`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Mapping
+
+# Values of the stage table's enumerated settings.
+DR_OPERATIONS: tuple[str, ...] = ("additive", "scaling")
+DR_DISTRIBUTIONS: tuple[str, ...] = ("gaussian", "uniform")
+ACTION_MAPPINGS: tuple[str, ...] = ("current", "default")
+LR_SCHEDULES: tuple[str, ...] = ("fixed", "adaptive_kl")
+ON_MISS: tuple[str, ...] = ("stop", "continue")
+# What a penalty schedule's points are keyed on: the stage's env steps so far, or the
+# training stand rate (the fraction of episodes that ended standing, last iteration).
+SCHEDULE_KEYS: tuple[str, ...] = ("env_steps", "stand_rate")
+
+
+@dataclasses.dataclass(frozen=True)
+class SimConfig:
+  timestep: float
+  ctrl_dt: float
+  episode_s: float
+
+  @property
+  def n_substeps(self) -> int:
+    return int(round(self.ctrl_dt / self.timestep))
+
+  @property
+  def episode_steps(self) -> int:
+    return int(round(self.episode_s / self.ctrl_dt))
+
+
+@dataclasses.dataclass(frozen=True)
+class ActionConfig:
+  mapping: str
+  scale: float
+  clip: float
+
+
+@dataclasses.dataclass(frozen=True)
+class ConstraintsConfig:
+  torque_limit_scale: float
+  joint_range_scale: float
+  velocity_limit_scale: float
+
+
+@dataclasses.dataclass(frozen=True)
+class ScenarioParams:
+  ksi_joint_noise: float
+  settle_s: float
+
+
+@dataclasses.dataclass(frozen=True)
+class TerrainConfig:
+  weights: Mapping[str, float]  # every terrain in TERRAINS, omitted ones 0
+  slope_max_deg: float
+
+
+@dataclasses.dataclass(frozen=True)
+class RewardParams:
+  base_height_target: float
+  base_height_sigma: float
+  hip_roll_ref: float
+  # Waist body height target of `waist_height` (mjlab's T1 get-up: 0.55 m, against sitting).
+  waist_height_target: float = 0.55
+  # `dof_pos_ref` applies only within this distance of the target height (0: everywhere);
+  # the paper's code pays it only near standing (|h - 0.68| < 0.1).
+  dof_pos_ref_band: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class PenaltySchedule:
+  """Piecewise-linear scale of every penalty (negative weight) over `by` (SCHEDULE_KEYS).
+
+  points: ((x0, s0), (x1, s1), ...) with x increasing; constant beyond the ends. With
+  by = "stand_rate" the scale never decreases within a stage (a ratchet): a dip in the stand
+  rate does not take the smoothing pressure away again.
+  """
+
+  by: str
+  points: tuple[tuple[float, float], ...]
+
+  def scale(self, x: float) -> float:
+    xs = [p[0] for p in self.points]
+    ys = [p[1] for p in self.points]
+    if x <= xs[0]:
+      return ys[0]
+    for (x0, y0), (x1, y1) in zip(self.points, self.points[1:]):
+      if x <= x1:
+        return y0 + (y1 - y0) * (x - x0) / (x1 - x0) if x1 > x0 else y1
+    return ys[-1]
+
+
+@dataclasses.dataclass(frozen=True)
+class RewardShaping:
+  """How the weighted terms become one reward (defaults: a plain weighted sum)."""
+
+  scale_by_ctrl_dt: bool = False  # weights × control period (the paper's code, legged_gym)
+  clip_at_zero: bool = False  # total clipped at 0 from below (`only_positive_rewards`)
+  penalty_schedule: PenaltySchedule | None = None  # None: penalties at full weight always
+
+
+@dataclasses.dataclass(frozen=True)
+class TerminationConfig:
+  """True terminations (no value bootstrap), apart from the time limit; 0 disables each."""
+
+  low_height: float = 0.0  # Trunk below this (m) ...
+  low_height_s: float = 2.0  # ... for longer than this (s) ends the episode
+  upside_down: float = 0.0  # projected gravity z above this (head down) ends it
+  side_roll: float = 0.0  # |projected gravity y| above this (lying on a side) ends it
+
+
+@dataclasses.dataclass(frozen=True)
+class MonitorConfig:
+  """The deterministic stand-rate monitor during training (no action noise)."""
+
+  every: int = 0  # iterations between monitor rollouts; 0: off
+  episodes: int = 4  # episodes per start scenario
+  scenarios: tuple[str, ...] = ()  # empty: every scenario of the mixture, plus `stand`
+
+
+@dataclasses.dataclass(frozen=True)
+class SuccessConfig:
+  height_tolerance: float
+  upright_tolerance: float
+  dof_tolerance: float
+  hold_s: float
+
+
+@dataclasses.dataclass(frozen=True)
+class DRParam:
+  """One row of the paper's DR table: gaussian range = (mean, std); uniform = (low, high)."""
+
+  range: tuple[float, float]
+  operation: str
+  distribution: str
+
+
+@dataclasses.dataclass(frozen=True)
+class DomainRandomizationConfig:
+  enabled: bool
+  params: Mapping[str, DRParam]  # only the parameters the stage names
+
+  def active(self, name: str) -> DRParam | None:
+    return self.params.get(name) if self.enabled else None
+
+
+@dataclasses.dataclass(frozen=True)
+class DelayConfig:
+  max_s: float
+
+
+@dataclasses.dataclass(frozen=True)
+class PushConfig:
+  enabled: bool
+  interval_s: tuple[float, float]
+  duration_s: float
+  force_max: float
+  torque_max: float
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+  num_envs: int
+  unroll_length: int
+  num_minibatches: int
+  update_epochs: int
+  learning_rate: float
+  lr_schedule: str
+  desired_kl: float
+  entropy_cost: float
+  clip_epsilon: float
+  value_loss_coef: float
+  discount: float
+  gae_lambda: float
+  max_grad_norm: float
+  reward_scaling: float
+  normalize_observations: bool
+  policy_hidden: tuple[int, ...]
+  value_hidden: tuple[int, ...]
+  activation: str
+  initial_action_std: float
+  checkpoint_every: int
+  max_action_std: float | None = None  # the policy's std is kept at or below this
+
+
+@dataclasses.dataclass(frozen=True)
+class RMAConfig:
+  enabled: bool
+  latent_dim: int
+  encoder_hidden: tuple[int, ...]
+  history_len: int
+  adaptation_env_steps: int
+  adaptation_learning_rate: float
+
+
+@dataclasses.dataclass(frozen=True)
+class MirrorConfig:
+  weight: float
+
+
+@dataclasses.dataclass(frozen=True)
+class AdvanceConfig:
+  env_steps: int
+  min_stand_rate: float | None
+  window: int
+  on_miss: str
+
+
+@dataclasses.dataclass(frozen=True)
+class StageConfig:
+  """One curriculum stage. Joint tuples are in canonical order, whatever the TOML's order."""
+
+  name: str
+  init_from: str
+  controlled_joints: tuple[str, ...]
+  observed_joints: tuple[str, ...]
+  sim: SimConfig
+  action: ActionConfig
+  constraints: ConstraintsConfig
+  scenarios: Mapping[str, float]  # every scenario in SCENARIOS, omitted ones 0
+  scenario_params: ScenarioParams
+  terrain: TerrainConfig
+  rewards: Mapping[str, float]  # every term in REWARD_TERMS, omitted ones 0
+  reward_params: RewardParams
+  success: SuccessConfig
+  domain_randomization: DomainRandomizationConfig
+  delay: DelayConfig
+  push: PushConfig
+  ppo: PPOConfig
+  rma: RMAConfig
+  mirror: MirrorConfig
+  advance: AdvanceConfig
+  reward_shaping: RewardShaping = RewardShaping()
+  termination: TerminationConfig = TerminationConfig()
+  monitor: MonitorConfig = MonitorConfig()
+
+  @property
+  def monitor_scenarios(self) -> tuple[str, ...]:
+    """The start scenarios the monitor measures, in SCENARIOS order (`scenarios` holds every
+    scenario in that order)."""
+    if self.monitor.scenarios:
+      return tuple(s for s in self.scenarios if s in self.monitor.scenarios)
+    return tuple(s for s, weight in self.scenarios.items() if weight > 0 or s == "stand")
+
+  @classmethod
+  def from_dict(cls, d: Mapping[str, Any]) -> "StageConfig":
+    """Parses a stage table; raises `config.ConfigError` for the first problem found."""
+    # Imported here: the parser checks names against the modules that own them, and those
+    # modules import these dataclasses.
+    from jax_env import config
+    return config.parse_stage(d)
