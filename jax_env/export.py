@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from jax_env import facade_requests
 from jax_env.files import write_atomic
 
 OPSET = 17
@@ -60,13 +61,8 @@ class ExportRequest:
 
   @classmethod
   def from_dict(cls, request: dict) -> "ExportRequest":
-    unknown = sorted(set(request) - set(_REQUEST_KEYS))
-    if unknown:
-      raise ValueError(f"export_onnx: unknown request key(s) {', '.join(unknown)}; valid: "
-                       f"{', '.join(_REQUEST_KEYS)}")
-    for key in ("checkpoint", "out"):
-      if not request.get(key):
-        raise ValueError(f"export_onnx: request key {key!r} is required")
+    facade_requests.check_keys("export_onnx", request, _REQUEST_KEYS,
+                               required=("checkpoint", "out"))
     tol = request.get("tolerance")
     tol = DEFAULT_TOLERANCE if tol is None else float(tol)
     if not (math.isfinite(tol) and tol > 0):

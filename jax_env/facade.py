@@ -9,32 +9,18 @@ this module is cheap and `versions()` works even when something else is broken.
 from __future__ import annotations
 
 import dataclasses
-import platform
-from importlib import metadata
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
-# Distribution names of the packages `versions()` reports, by the key it reports them under.
-_PACKAGES = {
-    "jax": "jax", "jaxlib": "jaxlib", "flax": "flax", "brax": "brax", "optax": "optax",
-    "mujoco": "mujoco", "mujoco_mjx": "mujoco-mjx", "numpy": "numpy",
-    "safetensors": "safetensors",
-}
+from jax_env import versions as versions_lib
 
 _TRAIN_KEYS = ("stage", "stage_name", "stage_dir", "seed", "backend", "num_envs",
                "init_checkpoint", "resume_checkpoint", "log_file")
-_BACKENDS = ("mjx", "native")
 
 
 def versions() -> dict:
   """Python and the versions of the packages hifar depends on (None where not installed)."""
-  out: dict[str, Any] = {"python": platform.python_version()}
-  for key, dist in _PACKAGES.items():
-    try:
-      out[key] = metadata.version(dist)
-    except metadata.PackageNotFoundError:
-      out[key] = None
-  return out
+  return versions_lib.versions()
 
 
 def doctor() -> dict:
@@ -69,7 +55,7 @@ def doctor() -> dict:
                     "`hifar setup`)")
   for key, version in versions().items():
     if version is None:
-      problems.append(f"package {_PACKAGES.get(key, key)} is not installed (run `hifar setup`)")
+      problems.append(f"package {versions_lib.PACKAGES.get(key, key)} is not installed (run `hifar setup`)")
   if accelerator and mjx:
     backend, reason = "mjx", "JAX sees an accelerator; MJX runs the batch on it"
   elif native:
@@ -101,16 +87,10 @@ def train_stage(request: dict, callback: Callable[[dict], str] | None) -> dict:
   Returns {"status": "completed"|"finished_early"|"interrupted", "checkpoint": dir,
   "env_steps": int}.
   """
-  unknown = sorted(set(request) - set(_TRAIN_KEYS))
-  if unknown:
-    raise ValueError(f"train_stage: unknown request key(s) {', '.join(unknown)}; valid: "
-                     f"{', '.join(_TRAIN_KEYS)}")
-  for key in ("stage", "stage_dir", "seed", "backend"):
-    if request.get(key) is None:
-      raise ValueError(f"train_stage: request key {key!r} is required")
-  backend = request["backend"]
-  if backend not in _BACKENDS:
-    raise ValueError(f"train_stage: unknown backend {backend!r}; valid: {', '.join(_BACKENDS)}")
+  from jax_env import facade_requests
+  facade_requests.check_keys("train_stage", request, _TRAIN_KEYS,
+                             required=("stage", "stage_dir", "seed", "backend"))
+  backend = facade_requests.check_backend("train_stage", request["backend"])
 
   from jax_env.env import FallRecoveryEnv
   from jax_env.learner import train

@@ -88,13 +88,13 @@ class Cell:
     return self.condition.scenario
 
   @property
-  def row(self) -> str:
-    """The table row the cell appears in (the paper's rows are prone / supine)."""
-    return "initial state" if self.experiment == "random_initial" else self.scenario
-
-  @property
   def label(self) -> str:
     return f"{self.experiment}/{self.scenario}/{self.setting}"
+
+
+def table_row(experiment: str, scenario: str) -> str:
+  """The row of eval.md's table a cell appears in (the paper's rows are prone / supine)."""
+  return "initial state" if experiment == "random_initial" else scenario
 
 
 def _num(x: float) -> str:

@@ -30,11 +30,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from jax_env import facade_requests
 from jax_env.files import write_atomic
 
 _REQUEST_KEYS = ("checkpoint", "stage", "scenario", "terrain", "push_force", "push_direction",
                  "seed", "backend", "duration_s", "video", "filmstrip")
-_BACKENDS = ("mjx", "native")
 
 # The floor as a primitive: a large flat box whose top face is the plane z = 0.
 FLOOR_HALF_SIZE = (10.0, 10.0, 0.01)
@@ -119,32 +119,23 @@ def rollout(request: dict) -> dict:
 def _checked_request(request: dict, scenarios: Sequence[str], terrains: Sequence[str],
                      conditions) -> dict:
   """The request with its defaults filled in; bad values raise one-line errors naming them."""
-  unknown = sorted(set(request) - set(_REQUEST_KEYS))
-  if unknown:
-    raise ValueError(f"rollout: unknown request key(s) {', '.join(unknown)}; valid: "
-                     f"{', '.join(_REQUEST_KEYS)}")
-  if not request.get("checkpoint"):
-    raise ValueError("rollout: request key 'checkpoint' is required")
+  facade_requests.check_keys("rollout", request, _REQUEST_KEYS, required=("checkpoint",))
   req = {k: request.get(k) for k in _REQUEST_KEYS}
   req["scenario"] = req["scenario"] or "supine"
   req["terrain"] = req["terrain"] or "flat"
   req["backend"] = req["backend"] or "native"
   req["seed"] = int(req["seed"] or 0)
-  if req["scenario"] not in scenarios:
-    raise ValueError(f"unknown scenario {req['scenario']!r}; valid: {', '.join(scenarios)}")
-  if req["terrain"] not in terrains:
-    raise ValueError(f"unknown terrain {req['terrain']!r}; valid: {', '.join(terrains)}")
-  if req["backend"] not in _BACKENDS:
-    raise ValueError(f"unknown backend {req['backend']!r}; valid: {', '.join(_BACKENDS)}")
+  facade_requests.check_choice("rollout", "scenario", req["scenario"], scenarios)
+  facade_requests.check_choice("rollout", "terrain", req["terrain"], terrains)
+  facade_requests.check_backend("rollout", req["backend"])
   force = 0.0 if req["push_force"] is None else float(req["push_force"])
   if not (math.isfinite(force) and force >= 0):
     raise ValueError(f"push force {req['push_force']!r} must be a number >= 0 (newtons)")
   req["push_force"] = force
   if req["push_direction"] is None:
     req["push_direction"] = conditions.planar_direction(req["scenario"])
-  if req["push_direction"] not in conditions.PUSH_DIRECTIONS:
-    raise ValueError(f"unknown push direction {req['push_direction']!r}; valid: "
-                     f"{', '.join(conditions.PUSH_DIRECTIONS)}")
+  facade_requests.check_choice("rollout", "push direction", req["push_direction"],
+                               tuple(conditions.PUSH_DIRECTIONS))
   duration = req["duration_s"]
   if duration is not None and not (math.isfinite(float(duration)) and float(duration) > 0):
     raise ValueError(f"duration {duration!r} must be a number of seconds > 0")

@@ -26,18 +26,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jax_env import facade_requests
+from jax_env import versions as versions_lib
 from jax_env.evaluation import conditions as cond_lib
 from jax_env.evaluation import policy as policy_lib
 from jax_env.evaluation import protocols as proto_lib
 from jax_env.evaluation import stats
 from jax_env.files import write_atomic
+from jax_env.learner import train as train_lib
 
 FORMAT_VERSION = 1
 FILES = ("eval.json", "eval.csv", "eval.md")
 DEFAULT_BATCH = {"mjx": 1024, "native": 128}
 _REQUEST_KEYS = ("checkpoint", "stage", "protocol", "trials", "backend", "seed", "out_dir",
                  "batch_size")
-_BACKENDS = ("mjx", "native")
 CSV_FIELDS = ("experiment", "scenario", "setting", "value", "trials", "successes",
               "success_rate", "ci_low", "ci_high", "recovery_time_mean", "recovery_time_std",
               "paper_success_rate", "paper_recovery_time_mean", "paper_recovery_time_std")
@@ -60,20 +62,11 @@ _ROLLOUTS: dict = {}
 
 
 def _validate(request: dict) -> dict:
-  unknown = sorted(set(request) - set(_REQUEST_KEYS))
-  if unknown:
-    raise ValueError(f"evaluate: unknown request key(s) {', '.join(unknown)}; valid: "
-                     f"{', '.join(_REQUEST_KEYS)}")
-  for key in ("checkpoint", "protocol", "backend", "out_dir"):
-    if request.get(key) is None:
-      raise ValueError(f"evaluate: request key {key!r} is required")
-  protocol = request["protocol"]
-  if protocol not in proto_lib.PROTOCOLS:
-    raise ValueError(f"evaluate: unknown protocol {protocol!r}; valid: "
-                     f"{', '.join(proto_lib.PROTOCOLS)}")
-  backend = request["backend"]
-  if backend not in _BACKENDS:
-    raise ValueError(f"evaluate: unknown backend {backend!r}; valid: {', '.join(_BACKENDS)}")
+  facade_requests.check_keys("evaluate", request, _REQUEST_KEYS,
+                             required=("checkpoint", "protocol", "backend", "out_dir"))
+  protocol = facade_requests.check_choice("evaluate", "protocol", request["protocol"],
+                                          tuple(proto_lib.PROTOCOLS))
+  backend = facade_requests.check_backend("evaluate", request["backend"])
   trials = request.get("trials")
   trials = proto_lib.DEFAULT_TRIALS[protocol] if trials is None else int(trials)
   if trials < 1:
@@ -89,14 +82,9 @@ def _validate(request: dict) -> dict:
               out_dir=Path(request["out_dir"]), batch_size=None if batch is None else int(batch))
 
 
-def seed_key(seed: int) -> jax.Array:
-  """The PRNG key of a u64 seed, both halves kept (as the learner derives its keys)."""
-  return jnp.asarray([seed >> 32, seed & 0xFFFFFFFF], dtype=jnp.uint32)
-
-
 def trial_keys(seed: int, cell_index: int, trials: int) -> np.ndarray:
   """Keys [trials, 2] of one cell's trials."""
-  return np.asarray(jax.random.split(jax.random.fold_in(seed_key(seed), cell_index), trials))
+  return np.asarray(jax.random.split(jax.random.fold_in(train_lib.seed_key(seed), cell_index), trials))
 
 
 def make_rollout(env, policy: policy_lib.Policy) -> Callable:
@@ -208,15 +196,13 @@ def _cell_result(cell: proto_lib.Cell, success: np.ndarray, recovery: np.ndarray
 
 
 def _document(r: dict, policy: policy_lib.Policy, env, results: list[dict]) -> dict:
-  from jax_env import facade
-
   setup = cond_lib.nominal_setup(env)
   setup.update(push_start_s=proto_lib.PUSH_START_S, push_duration_s=proto_lib.PUSH_DURATION_S)
   return {
       "format_version": FORMAT_VERSION, "protocol": r["protocol"], "backend": r["backend"],
       "seed": r["seed"], "trials": r["trials"], "checkpoint": str(r["checkpoint"].resolve()),
       "stage": policy.meta.get("stage"), "env_steps": policy.meta.get("env_steps"),
-      "versions": facade.versions(), "conditions": setup, "cells": results,
+      "versions": versions_lib.versions(), "conditions": setup, "cells": results,
   }
 
 
@@ -299,7 +285,7 @@ def render_markdown(doc: dict) -> str:
                 "up. The paper reports no such table."]
     else:
       settings = list(dict.fromkeys(c["setting"] for c in cells))
-      row_of = lambda c: "initial state" if exp == "random_initial" else c["scenario"]
+      row_of = lambda c: proto_lib.table_row(exp, c["scenario"])
       row_names = list(dict.fromkeys(row_of(c) for c in cells))
       index = {(row_of(c), c["setting"]): c for c in cells}
       header = [""] + settings

@@ -36,8 +36,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import shutil
-import uuid
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -48,6 +46,7 @@ import safetensors.numpy
 from brax.training import types as brax_types
 from brax.training.acme import running_statistics
 
+from jax_env.files import write_atomic, write_dir_atomic
 from jax_env.learner import networks as nets_lib
 from jax_env.learner import ppo as ppo_lib
 
@@ -379,60 +378,9 @@ def check_layout(meta: Mapping[str, Any], obs_names, privileged_names, action_na
                           " hidden sizes cannot change)")
 
 
-# ---------------------------------------------------------------------------------------------
-# Atomic writing.
-
-
-def _fsync_dir(path: Path) -> None:
-  fd = os.open(path, os.O_RDONLY)
-  try:
-    os.fsync(fd)
-  finally:
-    os.close(fd)
-
-
-def _write_file(path: Path, data: bytes) -> None:
-  with open(path, "wb") as f:
-    f.write(data)
-    f.flush()
-    os.fsync(f.fileno())
-
-
-def write_dir_atomic(final: Path, files: Mapping[str, bytes]) -> None:
-  """Writes files into a temporary sibling, fsyncs, and renames it to `final`.
-
-  An existing `final` (a checkpoint at the same env steps, e.g. re-reached after a resume) is
-  replaced: it is moved aside first, so a crash leaves either the old or the new directory.
-  """
-  final = Path(final)
-  parent = final.parent
-  parent.mkdir(parents=True, exist_ok=True)
-  tag = uuid.uuid4().hex[:8]
-  tmp = parent / f".{final.name}.tmp-{os.getpid()}-{tag}"
-  tmp.mkdir()
-  try:
-    for name, data in files.items():
-      _write_file(tmp / name, data)
-    _fsync_dir(tmp)
-    old = None
-    if final.exists():
-      old = parent / f".{final.name}.old-{os.getpid()}-{tag}"
-      os.rename(final, old)
-    os.rename(tmp, final)
-    _fsync_dir(parent)
-    if old is not None:
-      shutil.rmtree(old, ignore_errors=True)
-  except BaseException:
-    shutil.rmtree(tmp, ignore_errors=True)
-    raise
-
-
 def write_latest(checkpoints_dir: Path, name: str) -> None:
   """Atomically points `<checkpoints_dir>/LATEST` at the checkpoint directory `name`."""
-  tmp = checkpoints_dir / f".{LATEST_FILE}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-  _write_file(tmp, (name + "\n").encode())
-  os.replace(tmp, checkpoints_dir / LATEST_FILE)
-  _fsync_dir(checkpoints_dir)
+  write_atomic(Path(checkpoints_dir) / LATEST_FILE, name + "\n")
 
 
 def read_latest(checkpoints_dir: Path) -> Path | None:
@@ -474,7 +422,7 @@ def save(directory: str | os.PathLike, *, state: ppo_lib.LearnerState,
     files[ROLLOUT_FILE] = safetensors.numpy.save(
         {k: np.ascontiguousarray(v) for k, v in rollout.items()},
         metadata={"format_version": "1"})
-  write_dir_atomic(Path(directory), files)
+  write_dir_atomic(directory, files)
   return Path(directory)
 
 

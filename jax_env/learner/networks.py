@@ -217,9 +217,6 @@ class Networks:
     weights = {k: v for k, v in policy_params.items() if k != "log_std"}
     return self.policy_mlp.apply({"params": weights}, x)
 
-  def action_std(self, policy_params: Params) -> jax.Array:
-    return jnp.exp(policy_params["log_std"])
-
   def value(self, value_params: Params, obs_n: jax.Array, priv_n: jax.Array) -> jax.Array:
     x = jnp.concatenate([obs_n, priv_n], axis=-1)
     return self.value_mlp.apply({"params": value_params}, x)[..., 0]

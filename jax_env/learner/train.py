@@ -442,8 +442,6 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
   log(f"stage {config.stage_name}: {batch} envs on {n_dev} device(s), {steps_per_iter} env "
       f"steps per iteration, PPO budget {ppo_budget}, adaptation {adapt_budget}")
 
-  last_saved = {"env_steps": None}
-
   def total_steps():
     return counters["ppo_env_steps"] + counters["adaptation_env_steps"]
 
@@ -465,7 +463,6 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
                   action=config.action, extra=extra, rollout=rollout)
     ckpt_lib.write_latest(checkpoints_dir, directory.name)
     _prune_rollouts(checkpoints_dir, keep=directory)
-    last_saved["env_steps"] = steps
     log(f"stage {config.stage_name}: checkpoint {directory} (iteration "
         f"{counters['iteration']}, phase {counters['phase']})")
     return directory

@@ -13,6 +13,7 @@ import pytest
 import safetensors.numpy
 
 from jax_env import facade
+from jax_env import files as files_lib
 from jax_env.learner import checkpoint as ckpt_lib
 from jax_env.learner import networks as nets_lib
 from jax_env.learner import ppo as ppo_lib
@@ -295,13 +296,13 @@ def test_atomic_replace_and_latest(tmp_path):
     raise Boom
 
   # A failure while writing leaves the old checkpoint intact and no temporary directory.
-  orig = ckpt_lib._write_file
-  ckpt_lib._write_file = explode
+  orig = files_lib._write_synced
+  files_lib._write_synced = explode
   try:
     with pytest.raises(Boom):
       _save(d, state, config)
   finally:
-    ckpt_lib._write_file = orig
+    files_lib._write_synced = orig
   assert sorted(os.listdir(tmp_path / "checkpoints")) == ["000000004096", "LATEST"]
   assert float(ckpt_lib.load(d).tensors["opt/learning_rate"]) == pytest.approx(5e-4)
 
