@@ -55,7 +55,7 @@ from flax import struct
 
 from jax_env import robot
 from jax_env.kinematics import quat_to_mat
-from jax_env.physics.view import ModelParams
+from jax_env.physics.view import ModelParams, model_params
 from jax_env.stage_config import DRParam, StageConfig
 
 # The DR vocabulary of curricula (`[stage.domain_randomization]` keys): the rows of the table
@@ -222,17 +222,7 @@ class Randomizer:
     self.body_ids = robot.body_ids(m)
     self.trunk = int(m.body("Trunk").id)
     self.floor = int(m.geom(robot.FLOOR_GEOM).id)
-    self.nominal = dict(
-        geom_friction=np.asarray(m.geom_friction, np.float32),
-        geom_solref=np.asarray(m.geom_solref, np.float32),
-        body_mass=np.asarray(m.body_mass, np.float32),
-        body_ipos=np.asarray(m.body_ipos, np.float32),
-        body_inertia=np.asarray(m.body_inertia, np.float32),
-        kp=np.asarray(m.actuator_gainprm[:, 0], np.float32),
-        kd=np.asarray(-m.actuator_biasprm[:, 2], np.float32),
-        forcerange=np.asarray(m.actuator_forcerange, np.float32),
-        gravity=np.asarray(m.opt.gravity, np.float32),
-    )
+    self.nominal = model_params(m)
     self.floor_friction = float(m.geom_friction[self.floor, 0])
     self.floor_timeconst = float(m.geom_solref[self.floor, 0])
     self.floor_dampratio = float(m.geom_solref[self.floor, 1])
@@ -281,7 +271,7 @@ class Randomizer:
     r_draw, r_p = draw_or("terrain_restitution", (), e0)
     restitution = (r_draw * e0 if r_p is not None and r_p.operation == "scaling" else r_draw)
     restitution = jnp.clip(restitution, 0.0, 0.999)
-    geom_friction = jnp.broadcast_to(n["geom_friction"], (batch,) + n["geom_friction"].shape)
+    geom_friction = jnp.broadcast_to(n.geom_friction, (batch,) + n.geom_friction.shape)
     geom_friction = geom_friction.at[:, self.floor, 0].set(friction)
     # Direct (−stiffness, −damping) solref: compliance sets the spring, restitution the damper.
     timeconst = jnp.maximum(self.floor_timeconst * compliance, self.min_timeconst)
@@ -289,7 +279,7 @@ class Randomizer:
                  else jnp.full((batch,), self.floor_dampratio))
     stiffness = 1.0 / timeconst ** 2
     damping = 2.0 * dampratio * jnp.sqrt(stiffness)
-    geom_solref = jnp.broadcast_to(n["geom_solref"], (batch,) + n["geom_solref"].shape)
+    geom_solref = jnp.broadcast_to(n.geom_solref, (batch,) + n.geom_solref.shape)
     geom_solref = geom_solref.at[:, self.floor, 0].set(-stiffness)
     geom_solref = geom_solref.at[:, self.floor, 1].set(-damping)
 
@@ -297,28 +287,28 @@ class Randomizer:
     is_trunk = (self.body_ids == self.trunk)[None, :]
     tm, tm_p = draw_or("torso_mass", (1,), 1.0)
     om, om_p = draw_or("other_mass", (nb,), 1.0)
-    m0 = jnp.asarray(n["body_mass"][self.body_ids])
+    m0 = jnp.asarray(n.body_mass[self.body_ids])
     trunk_mass = _mass(m0, tm, tm_p)
     other_mass = _mass(m0, om, om_p)
     mass = jnp.where(is_trunk, trunk_mass, other_mass)
     mass_scale = mass / m0
     tc, tc_p = draw_or("torso_com", (1, 3), 0.0)
     oc, oc_p = draw_or("other_com", (nb, 3), 0.0)
-    ipos0 = jnp.asarray(n["body_ipos"][self.body_ids])
+    ipos0 = jnp.asarray(n.body_ipos[self.body_ids])
     ipos = jnp.where(is_trunk[..., None], _apply(ipos0, tc, tc_p), _apply(ipos0, oc, oc_p))
     com_offset = ipos - ipos0
-    body_mass = jnp.broadcast_to(n["body_mass"], (batch,) + n["body_mass"].shape)
+    body_mass = jnp.broadcast_to(n.body_mass, (batch,) + n.body_mass.shape)
     body_mass = body_mass.at[:, self.body_ids].set(mass)
-    body_inertia = jnp.broadcast_to(n["body_inertia"], (batch,) + n["body_inertia"].shape)
+    body_inertia = jnp.broadcast_to(n.body_inertia, (batch,) + n.body_inertia.shape)
     body_inertia = body_inertia.at[:, self.body_ids].multiply(mass_scale[..., None])
-    body_ipos = jnp.broadcast_to(n["body_ipos"], (batch,) + n["body_ipos"].shape)
+    body_ipos = jnp.broadcast_to(n.body_ipos, (batch,) + n.body_ipos.shape)
     body_ipos = body_ipos.at[:, self.body_ids].set(ipos)
 
     # PD gains.
     ks, ks_p = draw_or("joint_stiffness", (nj,), 1.0)
     ds, ds_p = draw_or("joint_damping", (nj,), 1.0)
-    kp = jnp.maximum(_apply(jnp.asarray(n["kp"]), ks, ks_p), 1e-3)
-    kd = jnp.maximum(_apply(jnp.asarray(n["kd"]), ds, ds_p), 0.0)
+    kp = jnp.maximum(_apply(jnp.asarray(n.actuator_kp), ks, ks_p), 1e-3)
+    kd = jnp.maximum(_apply(jnp.asarray(n.actuator_kd), ds, ds_p), 0.0)
 
     # Initial-state perturbations (applied by the scenario sampler).
     dof, _ = draw_or("dof_position", (nj,), 0.0 if self._additive("dof_position")
@@ -349,12 +339,12 @@ class Randomizer:
     params = ModelParams(
         geom_friction=geom_friction, geom_solref=geom_solref, body_mass=body_mass,
         body_ipos=body_ipos, body_inertia=body_inertia, actuator_kp=kp, actuator_kd=kd,
-        actuator_forcerange=jnp.broadcast_to(n["forcerange"], (batch,) + n["forcerange"].shape),
+        actuator_forcerange=jnp.broadcast_to(n.actuator_forcerange, (batch,) + n.actuator_forcerange.shape),
         gravity=gravity)
     return EpisodeDraw(
         params=params, friction=friction, compliance=compliance, restitution=restitution,
-        mass_scale=mass_scale, com_offset=com_offset, kp_scale=kp / n["kp"],
-        kd_scale=kd / jnp.maximum(n["kd"], 1e-9), delay_substeps=delay_substeps.astype(jnp.int32),
+        mass_scale=mass_scale, com_offset=com_offset, kp_scale=kp / n.actuator_kp,
+        kd_scale=kd / jnp.maximum(n.actuator_kd, 1e-9), delay_substeps=delay_substeps.astype(jnp.int32),
         delay_s=delay_substeps.astype(jnp.float32) * self.timestep, terrain=terrain.astype(
             jnp.int32), slope=slope, obstacle=obstacle, dof_position=dof, base_xy=bxy,
         base_lin_vel=blv)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import mujoco
 
-from jax_env.physics.view import Backend, ModelParams, PhysicsView
+from jax_env.physics.view import Backend, ModelParams, PhysicsView, model_params
 
 BACKENDS = ("mjx", "native")
 
@@ -27,24 +27,11 @@ def make_backend(name: str, mj_model: mujoco.MjModel, **kwargs) -> Backend:
 
 def nominal_params(mj_model: mujoco.MjModel, batch: int) -> ModelParams:
   """The model's own parameters broadcast to a batch (no randomization)."""
+  import jax
   import jax.numpy as jnp
-  import numpy as np
 
-  def b(x):
-    x = jnp.asarray(np.asarray(x, dtype=np.float32))
-    return jnp.broadcast_to(x, (batch,) + x.shape)
-
-  return ModelParams(
-      geom_friction=b(mj_model.geom_friction),
-      geom_solref=b(mj_model.geom_solref),
-      body_mass=b(mj_model.body_mass),
-      body_ipos=b(mj_model.body_ipos),
-      body_inertia=b(mj_model.body_inertia),
-      actuator_kp=b(mj_model.actuator_gainprm[:, 0]),
-      actuator_kd=b(-mj_model.actuator_biasprm[:, 2]),
-      actuator_forcerange=b(mj_model.actuator_forcerange),
-      gravity=b(mj_model.opt.gravity),
-  )
+  return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(jnp.asarray(x), (batch,) + x.shape),
+                                model_params(mj_model))
 
 
 __all__ = ["BACKENDS", "Backend", "ModelParams", "PhysicsView", "make_backend",

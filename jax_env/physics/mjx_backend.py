@@ -18,11 +18,7 @@ import jax.numpy as jnp
 import mujoco
 from mujoco import mjx
 
-from jax_env.physics.view import ModelParams, PhysicsView
-
-# mjx.Model fields carried per environment, keyed by their `tree_replace` path.
-_BATCHED_FIELDS = ("geom_friction", "geom_solref", "body_mass", "body_ipos", "body_inertia",
-                   "actuator_gainprm", "actuator_biasprm", "actuator_forcerange", "opt.gravity")
+from jax_env.physics.view import MODEL_FIELDS, ModelParams, PhysicsView, model_fields
 
 
 class MjxBackend:
@@ -40,31 +36,14 @@ class MjxBackend:
     self.forward_on_init = forward_on_init
     self.model = mjx.put_model(mj_model, impl="jax")
     axes = jax.tree_util.tree_map(lambda _: None, self.model)
-    self._in_axes = axes.tree_replace({k: 0 for k in _BATCHED_FIELDS})
+    self._in_axes = axes.tree_replace({k: 0 for k in MODEL_FIELDS})
     self._step1 = jax.vmap(mjx.step, in_axes=(self._in_axes, 0))
     self._forward = jax.vmap(mjx.forward, in_axes=(self._in_axes, 0))
 
   def batched_model(self, params: ModelParams) -> mjx.Model:
     """The mjx.Model with the per-env fields of `params` (leading axis B)."""
-    batch = params.actuator_kp.shape[0]
-    gain = jnp.broadcast_to(self.model.actuator_gainprm, (batch,) +
-                            self.model.actuator_gainprm.shape)
-    bias = jnp.broadcast_to(self.model.actuator_biasprm, (batch,) +
-                            self.model.actuator_biasprm.shape)
-    # Position servo: force = kp·ctrl − kp·q − kd·q̇ (gainprm[0], biasprm[1], biasprm[2]).
-    gain = gain.at[:, :, 0].set(params.actuator_kp)
-    bias = bias.at[:, :, 1].set(-params.actuator_kp).at[:, :, 2].set(-params.actuator_kd)
-    return self.model.tree_replace({
-        "geom_friction": params.geom_friction,
-        "geom_solref": params.geom_solref,
-        "body_mass": params.body_mass,
-        "body_ipos": params.body_ipos,
-        "body_inertia": params.body_inertia,
-        "actuator_gainprm": gain,
-        "actuator_biasprm": bias,
-        "actuator_forcerange": params.actuator_forcerange,
-        "opt.gravity": params.gravity,
-    })
+    return self.model.tree_replace(
+        model_fields(params, self.model.actuator_gainprm, self.model.actuator_biasprm))
 
   def init(self, qpos: jax.Array, qvel: jax.Array, params: ModelParams,
            mocap_pos: jax.Array) -> mjx.Data:

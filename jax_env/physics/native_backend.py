@@ -52,7 +52,8 @@ import numpy as np
 from flax import struct
 from mujoco import batch as mj_batch
 
-from jax_env.physics.view import ModelParams, PhysicsView
+from jax_env.physics.view import (MODEL_FIELDS, ModelParams, PhysicsView, model_fields,
+                                  param_shapes)
 
 _INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION
 _CTRL = int(mujoco.mjtState.mjSTATE_CTRL)
@@ -108,28 +109,14 @@ class _HostBatch:
     self.ctrl = b.bind("ctrl")
     self.xfrc = b.bind("xfrc_applied")
     self.derived = {name: b.bind(name) for name in _DERIVED}
-    self.friction = b.expand("geom_friction")
-    self.solref = b.expand("geom_solref")
-    self.mass = b.expand("body_mass")
-    self.ipos = b.expand("body_ipos")
-    self.inertia = b.expand("body_inertia")
-    self.gain = b.expand("actuator_gainprm")
-    self.bias = b.expand("actuator_biasprm")
-    self.forcerange = b.expand("actuator_forcerange")
-    self.gravity = b.expand("opt.gravity")
+    self.fields = {name: b.expand(name) for name in MODEL_FIELDS}
+    self.gainprm = np.array(mj_model.actuator_gainprm)
+    self.biasprm = np.array(mj_model.actuator_biasprm)
 
   def write_params(self, p: dict[str, np.ndarray]) -> None:
-    self.friction[...] = p["geom_friction"]
-    self.solref[...] = p["geom_solref"]
-    self.mass[...] = p["body_mass"]
-    self.ipos[...] = p["body_ipos"]
-    self.inertia[...] = p["body_inertia"]
-    kp = np.asarray(p["actuator_kp"])
-    self.gain[:, :, 0] = kp
-    self.bias[:, :, 1] = -kp
-    self.bias[:, :, 2] = -np.asarray(p["actuator_kd"])
-    self.forcerange[...] = p["actuator_forcerange"]
-    self.gravity[...] = p["gravity"]
+    params = ModelParams(**{name: np.asarray(value) for name, value in p.items()})
+    for name, value in model_fields(params, self.gainprm, self.biasprm).items():
+      self.fields[name][...] = value
 
   def blown_up(self) -> np.ndarray:
     """[nsim] bool: a blow-up warning was counted since the counters were cleared."""
@@ -283,13 +270,8 @@ class NativeBackend:
             s((nsim, m.nsensordata), f), s((nsim, m.nbody, 3), f), s((nsim, m.nbody, 4), f))
 
   def _check_params(self, params: ModelParams, nsim: int) -> dict[str, jax.Array]:
-    m = self.mj_model
-    want = {"geom_friction": (m.ngeom, 3), "geom_solref": (m.ngeom, 2),
-            "body_mass": (m.nbody,), "body_ipos": (m.nbody, 3), "body_inertia": (m.nbody, 3),
-            "actuator_kp": (m.nu,), "actuator_kd": (m.nu,),
-            "actuator_forcerange": (m.nu, 2), "gravity": (3,)}
     out = {}
-    for name, shape in want.items():
+    for name, shape in param_shapes(self.mj_model).items():
       x = getattr(params, name)
       if tuple(x.shape) != (nsim,) + shape:
         raise ValueError(f"ModelParams.{name} has shape {tuple(x.shape)}, expected "

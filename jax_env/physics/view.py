@@ -10,6 +10,9 @@ from __future__ import annotations
 from typing import Any, Protocol
 
 import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
 from flax import struct
 
 
@@ -26,6 +29,53 @@ class ModelParams:
   actuator_kd: jax.Array  # [B, nu]   -> biasprm[2] = -kd
   actuator_forcerange: jax.Array  # [B, nu, 2]
   gravity: jax.Array  # [B, 3]
+
+
+# The model fields that realise a `ModelParams`, by their `mjx.Model.tree_replace` path (which is
+# also the `mujoco.batch` field name): what both backends carry per environment.
+MODEL_FIELDS = ("geom_friction", "geom_solref", "body_mass", "body_ipos", "body_inertia",
+                "actuator_gainprm", "actuator_biasprm", "actuator_forcerange", "opt.gravity")
+
+
+def param_shapes(m: mujoco.MjModel) -> dict[str, tuple[int, ...]]:
+  """The shape of one environment's value of every `ModelParams` field."""
+  return {"geom_friction": (m.ngeom, 3), "geom_solref": (m.ngeom, 2), "body_mass": (m.nbody,),
+          "body_ipos": (m.nbody, 3), "body_inertia": (m.nbody, 3), "actuator_kp": (m.nu,),
+          "actuator_kd": (m.nu,), "actuator_forcerange": (m.nu, 2), "gravity": (3,)}
+
+
+def model_params(m: mujoco.MjModel) -> ModelParams:
+  """The model's own parameters (float32, no batch axis): what `model_fields` writes back."""
+  f32 = lambda x: np.asarray(x, np.float32)
+  return ModelParams(
+      geom_friction=f32(m.geom_friction), geom_solref=f32(m.geom_solref),
+      body_mass=f32(m.body_mass), body_ipos=f32(m.body_ipos), body_inertia=f32(m.body_inertia),
+      actuator_kp=f32(m.actuator_gainprm[:, 0]), actuator_kd=f32(-m.actuator_biasprm[:, 2]),
+      actuator_forcerange=f32(m.actuator_forcerange), gravity=f32(m.opt.gravity))
+
+
+def model_fields(params: ModelParams, gainprm, biasprm) -> dict[str, Any]:
+  """The values of MODEL_FIELDS that realise `params` (NumPy or JAX arrays, batched or not).
+
+  The actuators are position servos, force = kp·ctrl − kp·q − kd·q̇: kp sets gainprm[0] and
+  biasprm[1], kd biasprm[2]; the other columns keep the model's own `gainprm` / `biasprm`
+  ([nu, 10]).
+  """
+  xp = jnp if isinstance(params.actuator_kp, jax.Array) else np
+  kp, kd = params.actuator_kp[..., None], params.actuator_kd[..., None]
+  keep = lambda rows: xp.broadcast_to(rows, kp.shape[:-2] + rows.shape)
+  return {
+      "geom_friction": params.geom_friction,
+      "geom_solref": params.geom_solref,
+      "body_mass": params.body_mass,
+      "body_ipos": params.body_ipos,
+      "body_inertia": params.body_inertia,
+      "actuator_gainprm": xp.concatenate([kp, keep(gainprm[:, 1:])], axis=-1),
+      "actuator_biasprm": xp.concatenate([keep(biasprm[:, :1]), -kp, -kd, keep(biasprm[:, 3:])],
+                                         axis=-1),
+      "actuator_forcerange": params.actuator_forcerange,
+      "opt.gravity": params.gravity,
+  }
 
 
 @struct.dataclass

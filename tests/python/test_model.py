@@ -339,3 +339,20 @@ def test_mjx_accepts_and_steps_model(model):
   for name in ("gyro", "orientation", "local_linvel"):
     sl = robot.sensor_slice(model, name)
     np.testing.assert_allclose(sensordata[sl], data.sensordata[sl], atol=2e-2)
+
+
+def test_model_params_round_trip_through_the_model_fields(model):
+  """The one ModelParams <-> model-field mapping both physics backends use gives back the model's
+  own fields (as float32) for its own parameters, batched or not."""
+  from jax_env.physics.view import MODEL_FIELDS, model_fields, model_params, param_shapes
+
+  params = model_params(model)
+  assert {k: v.shape for k, v in vars(params).items()} == param_shapes(model)
+  fields = model_fields(params, model.actuator_gainprm, model.actuator_biasprm)
+  assert tuple(fields) == MODEL_FIELDS
+  own = lambda name: model.opt.gravity if name == "opt.gravity" else getattr(model, name)
+  for name, value in fields.items():
+    np.testing.assert_allclose(value, np.float32(own(name)), rtol=1e-6, err_msg=name)
+  batched = model_fields(type(params)(**{k: np.stack([v, v]) for k, v in vars(params).items()}),
+                         model.actuator_gainprm, model.actuator_biasprm)
+  assert batched["actuator_biasprm"].shape == (2,) + model.actuator_biasprm.shape
