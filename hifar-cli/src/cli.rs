@@ -2,6 +2,7 @@
 
 use std::path::PathBuf;
 
+use clap::builder::PossibleValuesParser;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 
 use crate::names::names;
@@ -59,21 +60,6 @@ pub struct CheckArgs {
     pub stage: Option<String>,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum BackendArg {
-    Mjx,
-    Native,
-}
-
-impl BackendArg {
-    pub fn as_str(self) -> &'static str {
-        match self {
-            BackendArg::Mjx => "mjx",
-            BackendArg::Native => "native",
-        }
-    }
-}
-
 #[derive(Debug, Args)]
 pub struct TrainArgs {
     /// Curriculum TOML file.
@@ -88,8 +74,8 @@ pub struct TrainArgs {
     #[arg(long, value_name = "N")]
     pub num_envs: Option<u32>,
     /// Physics backend (overrides the curriculum's `backend`).
-    #[arg(long, value_enum)]
-    pub backend: Option<BackendArg>,
+    #[arg(long, value_parser = physics_backend())]
+    pub backend: Option<String>,
     /// Continue the run in --run-dir from its last checkpoint.
     #[arg(long, requires = "run_dir", conflicts_with = "force")]
     pub resume: bool,
@@ -187,8 +173,8 @@ pub struct EvalArgs {
     #[arg(long, value_name = "N")]
     pub trials: Option<u32>,
     /// Physics backend [default: the machine's default, see `hifar doctor`].
-    #[arg(long, value_enum)]
-    pub backend: Option<BackendArg>,
+    #[arg(long, value_parser = physics_backend())]
+    pub backend: Option<String>,
     /// Seed of every random draw of the evaluation.
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub seed: u64,
@@ -220,8 +206,8 @@ pub struct RolloutArgs {
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub seed: u64,
     /// Physics backend [default: the machine's default, see `hifar doctor`].
-    #[arg(long, value_enum)]
-    pub backend: Option<BackendArg>,
+    #[arg(long, value_parser = physics_backend())]
+    pub backend: Option<String>,
     /// Episode length in seconds [default: the stage's episode_s].
     #[arg(long, value_name = "S")]
     pub duration: Option<f64>,
@@ -266,4 +252,9 @@ fn one_of_help(what: &str, names: &[&str]) -> String {
         Some((last, rest)) if !rest.is_empty() => format!("{what}: {} or {last}", rest.join(", ")),
         _ => format!("{what}: {}", names.join("")),
     }
+}
+
+/// `--backend`: one of the physics backends jax_env exports.
+fn physics_backend() -> PossibleValuesParser {
+    PossibleValuesParser::new(names().physics_backends.iter().copied())
 }

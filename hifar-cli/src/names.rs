@@ -243,6 +243,23 @@ vocabularies! {
     PushDirection: PushDirections = push_directions;
 }
 
+/// A curriculum's `backend`: `auto` (the CLI asks `facade.doctor()` which one this machine
+/// wants) or one of the physics backends.
+pub type Backend = Name<Backends>;
+
+#[derive(Debug)]
+pub enum Backends {}
+
+pub const AUTO_BACKEND: &str = "auto";
+
+static BACKENDS: LazyLock<Vec<&'static str>> = LazyLock::new(|| [&[AUTO_BACKEND][..], &names().physics_backends].concat());
+
+impl Vocabulary for Backends {
+    fn names() -> &'static [&'static str] {
+        &BACKENDS
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

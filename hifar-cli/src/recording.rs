@@ -83,6 +83,7 @@ struct Raw {
     standing: Vec<f64>,
     succeeded: Vec<f64>,
     push_force: Vec<[f64; 3]>,
+    push_direction: String,
     success: bool,
     recovery_time: Option<f64>,
     geoms: Vec<Geom>,
@@ -112,6 +113,8 @@ pub struct Recording {
     /// Stable standing reached at or before this step (the success detector, latched).
     pub succeeded: Vec<bool>,
     pub push_force: Vec<[f64; 3]>,
+    /// The torso-frame direction of the push (Python's default where none was asked for).
+    pub push_direction: String,
     pub success: bool,
     pub recovery_time: Option<f64>,
     pub geoms: Vec<Geom>,
@@ -196,6 +199,7 @@ impl Recording {
             standing: raw.standing.iter().map(|&v| v > 0.5).collect(),
             succeeded: raw.succeeded.iter().map(|&v| v > 0.5).collect(),
             push_force: raw.push_force,
+            push_direction: raw.push_direction,
             success: raw.success,
             recovery_time: raw.recovery_time,
             geoms: raw.geoms,
@@ -540,7 +544,7 @@ mod tests {
             "joint_torque": per(json!([1.5])), "torso_pitch": per(json!(0.2)), "reward": per(json!(1.0)),
             "reward_terms": {"survival": per(json!(0.5)), "standing": per(json!(0.5))},
             "standing": per(json!(1.0)), "succeeded": per(json!(0.0)), "push_force": per(json!([0.0, 0.0, 0.0])),
-            "success": false, "recovery_time": null,
+            "push_direction": "backward", "success": false, "recovery_time": null,
             "geoms": [
                 {"name": "trunk", "body": "Trunk", "type": "box", "size": [0.1, 0.1, 0.2], "pos": [0.0, 0.0, 0.0], "quat": [1.0, 0.0, 0.0, 0.0], "rgba": [0.5, 0.5, 0.5, 1.0]},
                 {"name": "leg", "body": "Waist", "type": "capsule", "size": [0.05, 0.1, 0.0], "pos": [0.0, 0.0, 0.0], "quat": [h, h, 0.0, 0.0], "rgba": [0.5, 0.5, 0.5, 1.0]},

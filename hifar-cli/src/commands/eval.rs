@@ -81,7 +81,7 @@ impl Plan {
 
 pub fn run(args: &EvalArgs) -> Result<()> {
     let plan = Plan::from_args(args)?;
-    let flag_backend = args.backend.map(|b| b.as_str().to_owned());
+    let flag_backend = args.backend.clone();
     if plan.out.is_some() || flag_backend.is_some() {
         plan.check_out(&plan.out_dir(flag_backend.as_deref().unwrap_or_default()))?;
     }

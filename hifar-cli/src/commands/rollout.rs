@@ -153,11 +153,14 @@ impl Plan {
     }
 }
 
-fn describe(plan: &Plan, backend: &str) -> String {
+/// What is recorded; `direction` is the push's (None before Python has chosen its default).
+fn describe(plan: &Plan, backend: &str, direction: Option<&str>) -> String {
     let mut text = format!("{} on {} terrain, {backend} backend", plan.scenario, plan.terrain);
     if let Some(force) = plan.push_force.filter(|f| *f > 0.0) {
-        let direction = plan.push_direction.as_deref().unwrap_or(if plan.scenario.contains("prone") { "forward" } else { "backward" });
-        text.push_str(&format!(", {force} N {direction} push"));
+        match direction {
+            Some(direction) => text.push_str(&format!(", {force} N {direction} push")),
+            None => text.push_str(&format!(", {force} N push")),
+        }
     }
     text
 }
@@ -174,17 +177,17 @@ fn shown(path: &Path) -> String {
 pub fn run(args: &RolloutArgs) -> Result<()> {
     let plan = Plan::new(args)?;
     let facade = setup::ensure_python()?;
-    let backend = match args.backend {
-        Some(backend) => backend.as_str().to_owned(),
+    let backend = match &args.backend {
+        Some(backend) => backend.clone(),
         None => default_backend(&facade, &paths::command_log())?,
     };
-    let what = describe(&plan, &backend);
     let status = Status::start("hifar rollout");
-    status.step(&format!("recording {what} (stage {})", plan.stage_name));
+    status.step(&format!("recording {} (stage {})", describe(&plan, &backend, plan.push_direction.as_deref()), plan.stage_name));
     let result = facade
         .call("rollout", &[plan.request(&backend)])
         .map_err(|err| python_failure("facade.rollout failed", err, &paths::command_log()))?;
     let rec = Recording::from_value(result).context("facade.rollout returned an unexpected result")?;
+    let what = describe(&plan, &backend, Some(&rec.push_direction));
 
     let mut metadata = BTreeMap::new();
     let mut put = |key: &str, value: String| {

@@ -20,16 +20,17 @@ use crate::checkpoint;
 use crate::cli::TrainArgs;
 use crate::commands::facade::python_failure;
 use crate::commands::{check, setup};
-use crate::ui::group_digits;
 use crate::curriculum::{self, Curriculum};
 use crate::error::{BadInput, Interrupted};
 use crate::metrics::{self, EventWriter, MetricsLog};
+use crate::names::AUTO_BACKEND;
 use crate::python::Facade;
 use crate::terminal::{Capture, Console};
 use crate::run_dir::{
     self, host_name, now_rfc3339, stage_seed, unix_time, CurriculumRecord, Manifest, RunDir, Session,
     StageRecord, Status, CURRICULUM_COPY,
 };
+use crate::ui::group_digits;
 use crate::{bad_input, paths};
 
 /// What one stage will be trained with, resolved before anything is written.
@@ -82,7 +83,7 @@ pub fn run(args: &TrainArgs) -> Result<()> {
     };
     let seed = args.seed.or(resume_manifest.as_ref().map(|m| m.seed));
     let num_envs = args.num_envs.or(resume_manifest.as_ref().and_then(|m| m.num_envs));
-    let backend_flag = args.backend.map(|b| b.as_str().to_owned()).or(resume_manifest.as_ref().map(|m| m.backend.clone()));
+    let backend_flag = args.backend.clone().or(resume_manifest.as_ref().map(|m| m.backend.clone()));
     curriculum
         .apply_overrides(seed, backend_flag.as_deref(), num_envs)
         .map_err(|err| anyhow::Error::new(BadInput(err.to_string())))?;
@@ -230,14 +231,14 @@ fn resolve_backend(
     args: &TrainArgs,
     resumed: Option<&Manifest>,
 ) -> Result<(String, String)> {
-    if let Some(flag) = args.backend {
-        return Ok((flag.as_str().to_owned(), "--backend".into()));
+    if let Some(flag) = &args.backend {
+        return Ok((flag.clone(), "--backend".into()));
     }
     if let Some(manifest) = resumed {
         return Ok((manifest.backend.clone(), format!("as when the run started ({})", manifest.backend_reason)));
     }
     let configured = curriculum.backend();
-    if configured != "auto" {
+    if configured != AUTO_BACKEND {
         return Ok((configured.to_owned(), format!("curriculum backend = \"{configured}\"")));
     }
     let log = paths::command_log();

@@ -29,6 +29,7 @@ pub use features::{feature_names, FeatureKind, FeatureNames};
 pub use schema::{Advance, Backend, CurriculumFile, StageTable as Stage};
 pub use span::{PathSegment, Target};
 
+use crate::names::{Backends, Vocabulary};
 use span::{line_col, SpanNode};
 use validate::InitSource;
 
@@ -297,9 +298,8 @@ impl Curriculum {
         num_envs: Option<u32>,
     ) -> Result<(), OverrideError> {
         if let Some(name) = backend {
-            let parsed = Backend::ALL.iter().copied().find(|b| b.as_str() == name).ok_or_else(|| {
-                let valid: Vec<&str> = Backend::ALL.iter().map(|b| b.as_str()).collect();
-                OverrideError(format!("--backend {name:?}: expected one of {}", valid.join(", ")))
+            let parsed = Backend::parse(name).ok_or_else(|| {
+                OverrideError(format!("--backend {name:?}: expected one of {}", Backends::names().join(", ")))
             })?;
             self.file.backend = parsed;
         }

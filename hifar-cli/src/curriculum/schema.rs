@@ -23,35 +23,13 @@ use serde::ser::SerializeMap;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 pub use crate::names::{
-    Activation, DrDistribution, DrOperation, DrParameter, LrSchedule, Mapping, OnMiss, RewardTerm, Scenario, ScheduleBy, Terrain,
+    Activation, Backend, DrDistribution, DrOperation, DrParameter, LrSchedule, Mapping, OnMiss, RewardTerm, Scenario, ScheduleBy,
+    Terrain,
 };
-use crate::names::{DrParameters, Name, Terrains, Vocabulary};
+use crate::names::{DrParameters, Name, Terrains, Vocabulary, AUTO_BACKEND};
 
 /// The version this build reads.
 pub const SCHEMA_VERSION: i64 = 1;
-
-/// Physics backend; `auto` lets `facade.doctor()` choose (MJX on an accelerator).
-///
-/// A setting of the experiment, not of a stage: the CLI resolves `auto` before Python sees it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Backend {
-    Auto,
-    Mjx,
-    Native,
-}
-
-impl Backend {
-    pub const ALL: &'static [Backend] = &[Backend::Auto, Backend::Mjx, Backend::Native];
-
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Backend::Auto => "auto",
-            Backend::Mjx => "mjx",
-            Backend::Native => "native",
-        }
-    }
-}
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -68,7 +46,7 @@ pub struct CurriculumFile {
 }
 
 fn default_backend() -> Backend {
-    Backend::Auto
+    Backend::parse(AUTO_BACKEND).expect("auto is a curriculum backend")
 }
 
 /// One `[[stage]]` table.
