@@ -370,8 +370,6 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
   steps_per_iter = batch * p.unroll_length
   ppo_budget = int(config.env_steps)
   adapt_budget = int(config.rma.adaptation_env_steps) if net_cfg.rma else 0
-  adapt_target = math.ceil(adapt_budget / steps_per_iter) * steps_per_iter
-  checkpoints_dir = Path(stage_dir) / "checkpoints"
   names = (tuple(env.obs_names), tuple(env.privileged_names), tuple(env.action_names))
 
   # -- state: fresh, initialised from weights, or resumed --------------------------------------
@@ -382,8 +380,7 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
                                                           p.learning_rate))(k_init)
   learner = template
   penalty = PenaltyScale(config.penalty_schedule)
-  counters = {"iteration": 0, "ppo_env_steps": 0, "adaptation_env_steps": 0, "phase": "ppo",
-              "finished_early": False, "penalty_scale": penalty.initial}
+  progress = Progress(penalty_scale=penalty.initial)
   reset = jax.jit(env.reset)
   env_state = None
   history = None
@@ -405,19 +402,18 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
     history = _restore_history(rollout, (batch, net_cfg.history_len, env.obs_size),
                                str(resume_checkpoint))
     key = jnp.asarray(np.asarray(ck.meta["prng_key"], np.uint32))
-    counters = {k: info.get(k, counters[k]) for k in counters}
-    if counters["phase"] not in ("ppo", "adaptation", "done"):
+    progress = progress.resumed(info)
+    if progress.phase not in PHASES:
       raise ckpt_lib.CheckpointError(f"{resume_checkpoint}: unknown learner phase "
-                                     f"{counters['phase']!r}")
+                                     f"{progress.phase!r}")
     if int(info.get("devices", n_dev)) != n_dev:
       log(f"resuming a run written on {info.get('devices')} devices on {n_dev}: it continues "
           "correctly but is no longer bit-identical to an uninterrupted run")
     log(f"stage {config.stage_name}: resuming from {resume_checkpoint} "
-        f"(iteration {counters['iteration']}, phase {counters['phase']})")
-    if counters["phase"] == "done":
-      return {"status": "finished_early" if counters["finished_early"] else "completed",
-              "checkpoint": str(Path(resume_checkpoint)),
-              "env_steps": counters["ppo_env_steps"] + counters["adaptation_env_steps"]}
+        f"(iteration {progress.iteration}, phase {progress.phase})")
+    if progress.phase == "done":
+      return {"status": progress.status, "checkpoint": str(Path(resume_checkpoint)),
+              "env_steps": progress.env_steps}
   elif init_checkpoint is not None:
     ck = ckpt_lib.load(init_checkpoint)
     ckpt_lib.check_layout(ck.meta, *names, net_cfg.meta(), str(init_checkpoint))
@@ -435,112 +431,191 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
   monitor = monitor_lib.make_monitor(config.monitor, stage_config, nets,
                                      getattr(env, "backend_name", None),
                                      jax.random.fold_in(seed_key(seed), 2))
-  sharding = _device_sharding(devices)
-  learner_d = _put(_replicate(learner, n_dev), sharding)
-  env_d = _put(_shard(env_state, n_dev), sharding)
-  hist_d = _put(_shard(history, n_dev), sharding)
+  stage = _StageRun(
+      config=config, net_cfg=net_cfg, names=names, devices=devices, batch=batch, seed=seed,
+      checkpoints_dir=Path(stage_dir) / "checkpoints", stage_config=stage_config,
+      budgets=_Budgets(steps_per_iter=steps_per_iter, ppo=ppo_budget, adaptation=adapt_budget),
+      steps={"ppo": ppo_iter, "adaptation": adapt_iter}, monitor=monitor, penalty=penalty,
+      callback=callback, log=log, progress=progress, learner=learner, env_state=env_state,
+      history=history, key=key)
   log(f"stage {config.stage_name}: {batch} envs on {n_dev} device(s), {steps_per_iter} env "
       f"steps per iteration, PPO budget {ppo_budget}, adaptation {adapt_budget}")
+  return stage.run()
 
-  def total_steps():
-    return counters["ppo_env_steps"] + counters["adaptation_env_steps"]
 
-  def save() -> Path:
-    steps = total_steps()
-    host_learner = jax.device_get(_unreplicate(learner_d))
-    rollout = {k: np.asarray(v) for k, v in _named_leaves(
-        jax.device_get(_unshard(env_d)), "env").items()}
-    rollout["history"] = np.asarray(jax.device_get(_unshard(hist_d)))
-    directory = checkpoints_dir / f"{steps:012d}"
-    extra = {"learner": dict(counters, num_envs=batch, devices=n_dev,
-                             initial_action_std=p.initial_action_std,
-                             ppo_budget=ppo_budget, adaptation_budget=adapt_budget)}
-    if stage_config is not None:
-      extra[ckpt_lib.STAGE_CONFIG_KEY] = dict(stage_config)
-    ckpt_lib.save(directory, state=host_learner, config=net_cfg, stage=config.stage_name,
-                  env_steps=steps, iteration=counters["iteration"], seed=seed, key=key,
-                  obs_names=names[0], privileged_names=names[1], action_names=names[2],
-                  action=config.action, extra=extra, rollout=rollout)
-    ckpt_lib.write_latest(checkpoints_dir, directory.name)
-    _prune_rollouts(checkpoints_dir, keep=directory)
-    log(f"stage {config.stage_name}: checkpoint {directory} (iteration "
-        f"{counters['iteration']}, phase {counters['phase']})")
-    return directory
+PHASES = ("ppo", "adaptation", "done")
 
-  def run_iteration(fn, phase: str, total: int):
-    nonlocal learner_d, env_d, hist_d, key
-    key, k_iter = jax.random.split(key)
+
+@dataclasses.dataclass
+class Progress:
+  """Where a stage's training stands: the `learner` section of every checkpoint.json (with the
+  run's sizes), and what an exact resume continues from."""
+
+  iteration: int = 0
+  ppo_env_steps: int = 0
+  adaptation_env_steps: int = 0
+  phase: str = "ppo"  # PHASES, in order; "adaptation" only with RMA
+  finished_early: bool = False  # the callback answered "finish" during PPO
+  penalty_scale: float = 1.0  # the penalty schedule's scale for the next PPO rollout
+
+  @property
+  def env_steps(self) -> int:
+    return self.ppo_env_steps + self.adaptation_env_steps
+
+  @property
+  def status(self) -> str:
+    """The status of a stage that ends here (but for an interruption)."""
+    return "finished_early" if self.finished_early else "completed"
+
+  def resumed(self, info: Mapping[str, Any]) -> "Progress":
+    """This progress with the values a checkpoint's `learner` section records."""
+    return dataclasses.replace(self, **{f.name: info[f.name] for f in dataclasses.fields(self)
+                                        if f.name in info})
+
+
+@dataclasses.dataclass(frozen=True)
+class _Budgets:
+  steps_per_iter: int  # env steps of one iteration (all envs, all devices)
+  ppo: int
+  adaptation: int  # 0 without RMA
+
+  @property
+  def adaptation_target(self) -> int:
+    """Where the adaptation phase ends: its budget rounded up to whole iterations."""
+    return math.ceil(self.adaptation / self.steps_per_iter) * self.steps_per_iter
+
+
+class _StageRun:
+  """The host loop of one stage, its state explicit: the learner replicated on the devices,
+  the environments and observation histories split across them, the training key, and
+  `progress`; `run` drives the phases, `save` checkpoints all of it."""
+
+  def __init__(self, *, config: LearnerConfig, net_cfg, names, devices, batch: int, seed: int,
+               checkpoints_dir: Path, stage_config, budgets: _Budgets, steps, monitor,
+               penalty: PenaltyScale, callback, log, progress: Progress, learner, env_state,
+               history, key):
+    self.config, self.net_cfg, self.names, self.seed = config, net_cfg, names, seed
+    self.checkpoints_dir, self.stage_config = checkpoints_dir, stage_config
+    self.budgets, self.steps, self.monitor, self.penalty = budgets, steps, monitor, penalty
+    self.callback, self.log, self.progress = callback, log, progress
+    self.n_dev = len(devices)
+    self.sharding = _device_sharding(devices)
+    self.batch = batch
+    self.learner = _put(_replicate(learner, self.n_dev), self.sharding)
+    self.env_state = _put(_shard(env_state, self.n_dev), self.sharding)
+    self.history = _put(_shard(history, self.n_dev), self.sharding)
+    self.key = key
+
+  def run(self) -> dict:
+    progress, budgets = self.progress, self.budgets
+    every = max(int(self.config.ppo.checkpoint_every), 1)
+    if progress.phase == "ppo":
+      while progress.ppo_env_steps < budgets.ppo:
+        answer = self.iterate("ppo", budgets.ppo)
+        if answer == "interrupt":
+          return self.interrupted()
+        if answer == "finish":
+          progress.finished_early = True
+          self.log(f"stage {self.config.stage_name}: finish requested at {progress.env_steps} "
+                   "env steps")
+          break
+        if progress.iteration % every == 0:
+          self.save()
+      progress.phase = "adaptation" if budgets.adaptation > 0 else "done"
+      if progress.phase == "adaptation":
+        self.save()  # the phase boundary: a resume must not re-enter PPO
+
+    if progress.phase == "adaptation":
+      total = progress.ppo_env_steps + budgets.adaptation_target
+      while progress.adaptation_env_steps < budgets.adaptation:
+        answer = self.iterate("adaptation", total)
+        if answer == "interrupt":
+          return self.interrupted()
+        # "finish" judges the PPO policy; the adaptation phase always completes its budget.
+        if progress.iteration % every == 0 and progress.adaptation_env_steps < budgets.adaptation:
+          self.save()
+      progress.phase = "done"
+
+    directory = self.save()
+    self.log(f"stage {self.config.stage_name}: {progress.status} at {progress.env_steps} env "
+             "steps")
+    return {"status": progress.status, "checkpoint": str(directory),
+            "env_steps": progress.env_steps}
+
+  def iterate(self, phase: str, total: int) -> str:
+    """One iteration of `phase`; returns the callback's answer."""
+    progress, config = self.progress, self.config
+    self.key, k_iter = jax.random.split(self.key)
     t0 = time.perf_counter()
-    scale = counters["penalty_scale"]
-    learner_d, env_d, hist_d, metrics, stats = fn(
-        learner_d, env_d, hist_d, _put(jax.random.split(k_iter, n_dev), sharding),
-        _put(jnp.full((n_dev,), scale, jnp.float32), sharding))
+    scale = progress.penalty_scale
+    self.learner, self.env_state, self.history, metrics, stats = self.steps[phase](
+        self.learner, self.env_state, self.history,
+        _put(jax.random.split(k_iter, self.n_dev), self.sharding),
+        _put(jnp.full((self.n_dev,), scale, jnp.float32), self.sharding))
     metrics, stats = jax.device_get((_unreplicate(metrics), _unreplicate(stats)))
     dt = time.perf_counter() - t0
-    counters["iteration"] += 1
-    counters[f"{phase}_env_steps"] += steps_per_iter
-    progress = {"iteration": counters["iteration"], "env_steps": total_steps(),
-                "steps_per_s": steps_per_iter / max(dt, 1e-9), "total_env_steps": total,
-                "phase": phase, "losses": {k: float(v) for k, v in metrics.items()},
-                "penalty_scale": scale}
-    progress.update(_summarize(stats))
+    steps = self.budgets.steps_per_iter
+    progress.iteration += 1
+    setattr(progress, f"{phase}_env_steps", getattr(progress, f"{phase}_env_steps") + steps)
+    report = {"iteration": progress.iteration, "env_steps": progress.env_steps,
+              "steps_per_s": steps / max(dt, 1e-9), "total_env_steps": total,
+              "phase": phase, "losses": {k: float(v) for k, v in metrics.items()},
+              "penalty_scale": scale}
+    report.update(_summarize(stats))
     if phase == "ppo":
-      counters["penalty_scale"] = penalty.after(scale, counters["ppo_env_steps"],
-                                                progress["stand_rate"])
-      last = counters["ppo_env_steps"] >= ppo_budget
-      if monitor is not None and monitor_lib.is_due(counters["iteration"],
-                                                    config.monitor.every, last):
-        host = _unreplicate(learner_d)
-        progress["monitor"] = monitor(host.params, host.normalizer)
-    bad = sorted(k for k, v in progress["losses"].items() if not math.isfinite(v))
+      progress.penalty_scale = self.penalty.after(scale, progress.ppo_env_steps,
+                                                  report["stand_rate"])
+      last = progress.ppo_env_steps >= self.budgets.ppo
+      if self.monitor is not None and monitor_lib.is_due(progress.iteration,
+                                                         config.monitor.every, last):
+        host = _unreplicate(self.learner)
+        report["monitor"] = self.monitor(host.params, host.normalizer)
+    bad = sorted(k for k, v in report["losses"].items() if not math.isfinite(v))
     if bad:
       # The parameters are poisoned from here on: stop rather than checkpoint garbage.
       message = (f"stage {config.stage_name}: non-finite {', '.join(bad)} at iteration "
-                 f"{counters['iteration']} ({phase}); the last good checkpoint is "
-                 f"{ckpt_lib.read_latest(checkpoints_dir) or 'none'}")
-      log(message)
+                 f"{progress.iteration} ({phase}); the last good checkpoint is "
+                 f"{ckpt_lib.read_latest(self.checkpoints_dir) or 'none'}")
+      self.log(message)
       raise FloatingPointError(message)
-    answer = callback(progress) if callback is not None else "continue"
+    answer = self.callback(report) if self.callback is not None else "continue"
     if answer not in ANSWERS:
       raise ValueError(f"progress callback answered {answer!r}; valid: {', '.join(ANSWERS)}")
     return answer
 
-  def interrupted():
-    directory = save()
-    log(f"stage {config.stage_name}: interrupted at {total_steps()} env steps")
-    return {"status": "interrupted", "checkpoint": str(directory), "env_steps": total_steps()}
+  def save(self) -> Path:
+    """A checkpoint of everything an exact resume needs; returns its directory."""
+    progress, config, p = self.progress, self.config, self.config.ppo
+    steps = progress.env_steps
+    host_learner = jax.device_get(_unreplicate(self.learner))
+    rollout = {k: np.asarray(v) for k, v in _named_leaves(
+        jax.device_get(_unshard(self.env_state)), "env").items()}
+    rollout["history"] = np.asarray(jax.device_get(_unshard(self.history)))
+    directory = self.checkpoints_dir / f"{steps:012d}"
+    extra = {"learner": dict(dataclasses.asdict(progress), num_envs=self.batch,
+                             devices=self.n_dev, initial_action_std=p.initial_action_std,
+                             ppo_budget=self.budgets.ppo,
+                             adaptation_budget=self.budgets.adaptation)}
+    if self.stage_config is not None:
+      extra[ckpt_lib.STAGE_CONFIG_KEY] = dict(self.stage_config)
+    obs_names, privileged_names, action_names = self.names
+    ckpt_lib.save(directory, state=host_learner, config=self.net_cfg, stage=config.stage_name,
+                  env_steps=steps, iteration=progress.iteration, seed=self.seed, key=self.key,
+                  obs_names=obs_names, privileged_names=privileged_names,
+                  action_names=action_names, action=config.action, extra=extra,
+                  rollout=rollout)
+    ckpt_lib.write_latest(self.checkpoints_dir, directory.name)
+    _prune_rollouts(self.checkpoints_dir, keep=directory)
+    self.log(f"stage {config.stage_name}: checkpoint {directory} (iteration "
+             f"{progress.iteration}, phase {progress.phase})")
+    return directory
 
-  every = max(int(p.checkpoint_every), 1)
-  if counters["phase"] == "ppo":
-    while counters["ppo_env_steps"] < ppo_budget:
-      answer = run_iteration(ppo_iter, "ppo", ppo_budget)
-      if answer == "interrupt":
-        return interrupted()
-      if answer == "finish":
-        counters["finished_early"] = True
-        log(f"stage {config.stage_name}: finish requested at {total_steps()} env steps")
-        break
-      if counters["iteration"] % every == 0:
-        save()
-    counters["phase"] = "adaptation" if adapt_budget > 0 else "done"
-    if counters["phase"] == "adaptation":
-      save()  # the phase boundary: a resume must not re-enter PPO
-
-  if counters["phase"] == "adaptation":
-    total = counters["ppo_env_steps"] + adapt_target
-    while counters["adaptation_env_steps"] < adapt_budget:
-      answer = run_iteration(adapt_iter, "adaptation", total)
-      if answer == "interrupt":
-        return interrupted()
-      # "finish" judges the PPO policy; the adaptation phase always completes its budget.
-      if counters["iteration"] % every == 0 and counters["adaptation_env_steps"] < adapt_budget:
-        save()
-    counters["phase"] = "done"
-
-  directory = save()
-  status = "finished_early" if counters["finished_early"] else "completed"
-  log(f"stage {config.stage_name}: {status} at {total_steps()} env steps")
-  return {"status": status, "checkpoint": str(directory), "env_steps": total_steps()}
+  def interrupted(self) -> dict:
+    directory = self.save()
+    self.log(f"stage {self.config.stage_name}: interrupted at {self.progress.env_steps} env "
+             "steps")
+    return {"status": "interrupted", "checkpoint": str(directory),
+            "env_steps": self.progress.env_steps}
 
 
 def _prune_rollouts(checkpoints_dir: Path, keep: Path) -> None:
