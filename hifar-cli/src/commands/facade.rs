@@ -10,12 +10,19 @@ use crate::python::{Facade, PythonError};
 
 /// The physics backend `backend = "auto"` means on this machine (`facade.doctor()`).
 pub fn default_backend(facade: &Facade, log: &Path) -> Result<String> {
+    default_backend_and_reason(facade, log).map(|(backend, _)| backend)
+}
+
+/// [`default_backend`], and why `facade.doctor()` chose it.
+pub fn default_backend_and_reason(facade: &Facade, log: &Path) -> Result<(String, String)> {
     let report = facade.call("doctor", &[]).map_err(|err| python_failure("facade.doctor() failed", err, log))?;
-    report
+    let backend = report
         .get("default_backend")
         .and_then(Value::as_str)
         .map(str::to_owned)
-        .ok_or_else(|| anyhow!("facade.doctor() returned no default_backend: {report}"))
+        .ok_or_else(|| anyhow!("facade.doctor() returned no default_backend: {report}"))?;
+    let reason = report.get("reason").and_then(Value::as_str).unwrap_or("auto").to_owned();
+    Ok((backend, reason))
 }
 
 /// Turns a Python exception into a one-line error, its traceback appended to `log`.

@@ -18,7 +18,7 @@ use serde_json::{json, Map, Value};
 
 use crate::checkpoint;
 use crate::cli::TrainArgs;
-use crate::commands::facade::python_failure;
+use crate::commands::facade::{default_backend_and_reason, python_failure};
 use crate::commands::{check, setup};
 use crate::curriculum::{self, Curriculum};
 use crate::error::{BadInput, Interrupted};
@@ -241,16 +241,7 @@ fn resolve_backend(
     if configured != AUTO_BACKEND {
         return Ok((configured.to_owned(), format!("curriculum backend = \"{configured}\"")));
     }
-    let log = paths::command_log();
-    let report = facade
-        .call("doctor", &[])
-        .map_err(|err| python_failure("facade.doctor() failed", err, &log))?;
-    let backend = report
-        .get("default_backend")
-        .and_then(Value::as_str)
-        .ok_or_else(|| anyhow!("facade.doctor() returned no default_backend"))?
-        .to_owned();
-    let reason = report.get("reason").and_then(Value::as_str).unwrap_or("auto").to_owned();
+    let (backend, reason) = default_backend_and_reason(facade, &paths::command_log())?;
     Ok((backend, format!("auto: {reason}")))
 }
 
