@@ -21,7 +21,7 @@ from jax_env.names import (ACTIVATIONS, DR_PARAMS, JOINT_NAMES, KEYFRAMES, REWAR
                            SCENARIOS, TERRAINS)
 from jax_env.stage_config import (ACTION_MAPPINGS, DR_DISTRIBUTIONS, DR_OPERATIONS,
                                   LR_SCHEDULES, ON_MISS, SCHEDULE_KEYS, ActionConfig,
-                                  AdvanceConfig, ConstraintsConfig, DelayConfig,
+                                  AdvanceConfig, AssistConfig, ConstraintsConfig, DelayConfig,
                                   DomainRandomizationConfig, DRParam, MirrorConfig,
                                   MonitorConfig, PenaltySchedule, PPOConfig, PushConfig,
                                   RewardParams, RewardShaping, RMAConfig, ScenarioParams,
@@ -31,7 +31,7 @@ from jax_env.stage_config import (ACTION_MAPPINGS, DR_DISTRIBUTIONS, DR_OPERATIO
 __all__ = [
     "ConfigError", "check_stage", "parse_stage",
     # The typed stage (jax_env.stage_config), re-exported as this module's result types.
-    "ActionConfig", "AdvanceConfig", "ConstraintsConfig", "DelayConfig",
+    "ActionConfig", "AdvanceConfig", "AssistConfig", "ConstraintsConfig", "DelayConfig",
     "DomainRandomizationConfig", "DRParam", "MirrorConfig", "MonitorConfig", "PenaltySchedule",
     "PPOConfig", "PushConfig", "RewardParams", "RewardShaping", "RMAConfig", "ScenarioParams",
     "SimConfig", "StageConfig", "SuccessConfig", "TerminationConfig", "TerrainConfig",
@@ -239,7 +239,7 @@ class _Parser:
     sections = ("sim", "action", "constraints", "scenarios", "scenario_params", "terrain",
                 "rewards", "reward_params", "success", "domain_randomization", "delay", "push",
                 "ppo", "rma", "mirror", "advance")
-    optional = ("reward_shaping", "termination", "monitor")
+    optional = ("reward_shaping", "termination", "monitor", "assist")
     if self.table(d, [], ("name", "init_from", "controlled_joints", "observed_joints")
                   + sections, optional) is None:
       return None
@@ -274,6 +274,7 @@ class _Parser:
         reward_shaping=self.reward_shaping(d.get("reward_shaping", {})),
         termination=self.termination(d.get("termination", {})),
         monitor=self.monitor(d.get("monitor", {})),
+        assist=self.assist(d.get("assist", {})),
     )
     if self.errors or any(v is None for v in out.values()):
       return None
@@ -448,6 +449,17 @@ class _Parser:
                  "vector; 0 disables)")
         values[k] = None
     return self._all(TerminationConfig, values)
+
+  def assist(self, d):
+    p = ["assist"]
+    d = self._section(d, "assist", (), ("force", "schedule"))
+    force = self.number(d, "force", p, minimum=0.0, default=AssistConfig().force)
+    schedule = None
+    if d is not None and "schedule" in d:
+      schedule = self.penalty_schedule(d["schedule"], p + ["schedule"])
+      if schedule is None:
+        return None
+    return None if force is None else AssistConfig(force=force, schedule=schedule)
 
   def monitor(self, d):
     p = ["monitor"]

@@ -21,8 +21,10 @@ One control step:
      or blew up numerically (NaN) are reset with a fresh draw (scenario, randomization, delay,
      terrain) in the same step.
 
-Penalties are scaled by `EnvState.penalty_scale`, which the learner sets from the stage's
-penalty schedule (a schedule is data in the curriculum; the step only multiplies). Training
+Penalties are scaled by `EnvState.penalty_scale`, and an assisting upward force on the Trunk
+is `EnvState.assist_force`; the learner sets both from the stage's schedules (a schedule is
+data in the curriculum; the step only multiplies and adds). Outside training both stay at
+their reset values: full penalties, no assist. Training
 staggers the episode clocks once at the start (`stagger`), so that the batch does not hold one
 phase of every episode at a time.
 """
@@ -97,6 +99,7 @@ class EnvState:
   max_height: jax.Array  # [B] highest Trunk height of the episode so far
   stand_steps: jax.Array  # [B] int32 controlled steps spent standing this episode
   penalty_scale: jax.Array  # [B] the penalty schedule's current scale (set by the learner)
+  assist_force: jax.Array  # [B] N, upward on the Trunk while controlled (set by the learner)
   control_start: jax.Array  # [B] int32 first controlled step (settling before it)
   scenario: jax.Array  # [B] int32 index into SCENARIOS
   targets: jax.Array  # [B, K, nu] issued PD targets, newest first (for the delay)
@@ -256,6 +259,7 @@ class FallRecoveryEnv:
         episode_limit=jnp.full((batch,), self.episode_steps, jnp.int32),
         low_steps=jnp.zeros((batch,), jnp.int32), max_height=qpos[:, 2],
         stand_steps=jnp.zeros((batch,), jnp.int32), penalty_scale=jnp.ones((batch,)),
+        assist_force=jnp.zeros((batch,)),
         scenario=scenario.astype(jnp.int32),
         targets=jnp.broadcast_to(hold[:, None], (batch, self.target_history, hold.shape[-1])),
         hold_target=hold, last_action=zeros_a, prev_action=zeros_a, prev_qvel=qvel, push=push,
@@ -299,6 +303,11 @@ class FallRecoveryEnv:
     return state.replace(penalty_scale=jnp.broadcast_to(
         jnp.asarray(scale, jnp.float32), state.penalty_scale.shape))
 
+  def with_assist_force(self, state: EnvState, force) -> EnvState:
+    """The state with the assist schedule's upward force (N) for the coming steps."""
+    return state.replace(assist_force=jnp.broadcast_to(
+        jnp.asarray(force, jnp.float32), state.assist_force.shape))
+
   # -------------------------------------------------------------------------------------------
   # Step.
 
@@ -330,6 +339,8 @@ class FallRecoveryEnv:
     xfrc = jnp.zeros((batch, self.mj_model.nbody, 6))
     wrench = jnp.concatenate([push.force, push.torque], axis=-1) * pushing[:, None]
     wrench = wrench.at[:, :3].add(scheduled_force)
+    # The training assist pulls only while the policy acts (not while a drop settles).
+    wrench = wrench.at[:, 2].add(state.assist_force * active)
     xfrc = xfrc.at[:, self.trunk].set(wrench)
 
     # 4. Physics.
@@ -385,7 +396,7 @@ class FallRecoveryEnv:
       fresh = self._reset(k_reset)
       keep = dict(reward=nxt.reward, done=nxt.done, truncation=nxt.truncation,
                   metrics=nxt.metrics, episode_metrics=nxt.episode_metrics,
-                  penalty_scale=nxt.penalty_scale)
+                  penalty_scale=nxt.penalty_scale, assist_force=nxt.assist_force)
       merged = jax.tree_util.tree_map(
           lambda new, old: jnp.where(done.reshape((-1,) + (1,) * (old.ndim - 1)), new, old),
           fresh, nxt)

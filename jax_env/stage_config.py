@@ -119,6 +119,18 @@ class TerminationConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class AssistConfig:
+  """An upward force on the Trunk while training, to help discover standing up (HoST's and
+  holosoma's vertical-pull curriculum): `force` newtons times the schedule's scale. With
+  by = "stand_rate" the scale never increases within a stage (a downward ratchet). Evaluation,
+  the monitor and exported policies never see it; a schedule should reach 0 before the stage
+  ends, so that the final policy stands up by itself."""
+
+  force: float = 0.0  # N at scale 1; 0: off
+  schedule: PenaltySchedule | None = None  # None: the full force throughout
+
+
+@dataclasses.dataclass(frozen=True)
 class MonitorConfig:
   """The deterministic stand-rate monitor during training (no action noise)."""
 
@@ -242,6 +254,7 @@ class StageConfig:
   reward_shaping: RewardShaping = RewardShaping()
   termination: TerminationConfig = TerminationConfig()
   monitor: MonitorConfig = MonitorConfig()
+  assist: AssistConfig = AssistConfig()
 
   @property
   def monitor_scenarios(self) -> tuple[str, ...]:

@@ -6,11 +6,12 @@ The loop, per iteration (one jitted, `jax.pmap`ped call over all local devices):
   update    PPO epochs (ppo.ppo_update), gradients averaged over devices.
 Then the deterministic monitor where it is due (monitor.py: the noise-free policy's stand rate
 per start state), the progress callback, and a checkpoint every `checkpoint_every` iterations.
-Between iterations the host sets the penalty schedule's scale for the next rollout
-(`PenaltyScale`), and a fresh environment batch has its episode clocks staggered once. When the
-PPO budget (`advance.env_steps`) is spent or the callback answers "finish", the RMA adaptation
-phase runs for `rma.adaptation_env_steps` (rollouts acting with the adaptation module's own
-estimate, then latent regression, rma.adaptation_update), and a final checkpoint is written.
+Between iterations the host sets the schedules' values for the next rollout (`ScheduleScale`:
+the penalty scale and the assisting force), and a fresh environment batch has its episode
+clocks staggered once. When the PPO budget (`advance.env_steps`) is spent or the callback
+answers "finish", the RMA adaptation phase runs for `rma.adaptation_env_steps` (rollouts acting
+with the adaptation module's own estimate, then latent regression, rma.adaptation_update), and
+a final checkpoint is written.
 
 Randomness comes only from the stage seed: key → (init, env reset, training); every iteration
 splits the training key into one key per device. The learner state is replicated on the
@@ -62,6 +63,7 @@ class LearnerConfig:
   env_steps: int  # the PPO budget: advance.env_steps
   action: Mapping[str, Any]  # {"mapping", "scale", "clip"}, recorded in checkpoints
   penalty_schedule: Any = None  # config.PenaltySchedule, or None: penalties at full weight
+  assist: Any = None  # config.AssistConfig, or None: no assisting force
   monitor: Any = None  # config.MonitorConfig with its scenarios resolved, or None: off
 
   @classmethod
@@ -71,6 +73,7 @@ class LearnerConfig:
                mirror_weight=stage.mirror.weight, env_steps=stage.advance.env_steps,
                action=dataclasses.asdict(stage.action),
                penalty_schedule=stage.reward_shaping.penalty_schedule,
+               assist=stage.assist if stage.assist.force > 0 else None,
                monitor=monitor if monitor.every > 0 else None)
 
   def network_config(self, env) -> nets_lib.NetworkConfig:
@@ -84,24 +87,27 @@ class LearnerConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class PenaltyScale:
-  """The stage's penalty schedule as the learner applies it, one value per iteration."""
+class ScheduleScale:
+  """A stage schedule (config.PenaltySchedule) as the learner applies it, one value per
+  iteration. By stand rate the value moves one way only (`ratchet`): `max` for penalties, which
+  do not ease off when the stand rate dips, `min` for the assist, which does not come back."""
 
-  schedule: Any  # config.PenaltySchedule or None
+  schedule: Any  # config.PenaltySchedule or None (the value is then 1 throughout)
+  ratchet: Callable[[float, float], float] = max
 
   @property
   def initial(self) -> float:
     return 1.0 if self.schedule is None else float(self.schedule.scale(0.0))
 
   def after(self, current: float, env_steps: int, stand_rate: float | None) -> float:
-    """The scale for the next iteration, given this one's env steps and stand rate."""
+    """The value for the next iteration, given this one's env steps and stand rate."""
     if self.schedule is None:
       return 1.0
     if self.schedule.by == "env_steps":
       return float(self.schedule.scale(env_steps))
     if stand_rate is None:
       return current
-    return max(current, float(self.schedule.scale(stand_rate)))  # a ratchet
+    return self.ratchet(current, float(self.schedule.scale(stand_rate)))
 
 
 def seed_key(seed: int) -> jax.Array:
@@ -254,11 +260,14 @@ def _summarize(stats: Mapping[str, Any]) -> dict[str, Any]:
 # The jitted iteration functions.
 
 
-def _with_penalty_scale(env, env_state, scale):
-  """The env state with the penalty schedule's scale (envs without penalties ignore it)."""
-  if not hasattr(env, "with_penalty_scale"):
-    return env_state
-  return env.with_penalty_scale(env_state, scale)
+def _with_schedules(env, env_state, schedules):
+  """The env state with this iteration's schedule values, [penalty scale, assist force (N)]
+  (an env without penalties or an assist ignores them)."""
+  if hasattr(env, "with_penalty_scale"):
+    env_state = env.with_penalty_scale(env_state, schedules[0])
+  if hasattr(env, "with_assist_force"):
+    env_state = env.with_assist_force(env_state, schedules[1])
+  return env_state
 
 
 def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devices):
@@ -268,9 +277,9 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
   def scan_stats(stats):
     return jax.tree_util.tree_map(lambda x: jax.lax.psum(jnp.sum(x), AXIS), stats)
 
-  def ppo_iteration(learner: ppo_lib.LearnerState, env_state, history, key, penalty_scale):
+  def ppo_iteration(learner: ppo_lib.LearnerState, env_state, history, key, schedules):
     k_roll, k_update = jax.random.split(key)
-    env_state = _with_penalty_scale(env, env_state, penalty_scale)
+    env_state = _with_schedules(env, env_state, schedules)
     params, normalizer = learner.params, learner.normalizer
     log_std = params["policy"]["log_std"]
     dist = nets.action_distribution
@@ -295,9 +304,9 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
     return learner, env_state, history, metrics, scan_stats(stats)
 
   def adaptation_iteration(learner: ppo_lib.LearnerState, env_state, history, key,
-                           penalty_scale):
+                           schedules):
     params, normalizer = learner.params, learner.normalizer
-    env_state = _with_penalty_scale(env, env_state, penalty_scale)
+    env_state = _with_schedules(env, env_state, schedules)
 
     def step(carry, _):
       es, hist = carry
@@ -379,8 +388,9 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
   template = jax.jit(lambda k: ppo_lib.init_learner_state(nets, nets.init(k), p.max_grad_norm,
                                                           p.learning_rate))(k_init)
   learner = template
-  penalty = PenaltyScale(config.penalty_schedule)
-  progress = Progress(penalty_scale=penalty.initial)
+  penalty = ScheduleScale(config.penalty_schedule)
+  assist = ScheduleScale(config.assist.schedule if config.assist else None, ratchet=min)
+  progress = Progress(penalty_scale=penalty.initial, assist_scale=assist.initial)
   reset = jax.jit(env.reset)
   env_state = None
   history = None
@@ -436,7 +446,7 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
       checkpoints_dir=Path(stage_dir) / "checkpoints", stage_config=stage_config,
       budgets=_Budgets(steps_per_iter=steps_per_iter, ppo=ppo_budget, adaptation=adapt_budget),
       steps={"ppo": ppo_iter, "adaptation": adapt_iter}, monitor=monitor, penalty=penalty,
-      callback=callback, log=log, progress=progress, learner=learner, env_state=env_state,
+      assist=assist, callback=callback, log=log, progress=progress, learner=learner, env_state=env_state,
       history=history, key=key)
   log(f"stage {config.stage_name}: {batch} envs on {n_dev} device(s), {steps_per_iter} env "
       f"steps per iteration, PPO budget {ppo_budget}, adaptation {adapt_budget}")
@@ -457,6 +467,7 @@ class Progress:
   phase: str = "ppo"  # PHASES, in order; "adaptation" only with RMA
   finished_early: bool = False  # the callback answered "finish" during PPO
   penalty_scale: float = 1.0  # the penalty schedule's scale for the next PPO rollout
+  assist_scale: float = 1.0  # the assist schedule's scale for the next PPO rollout
 
   @property
   def env_steps(self) -> int:
@@ -492,11 +503,13 @@ class _StageRun:
 
   def __init__(self, *, config: LearnerConfig, net_cfg, names, devices, batch: int, seed: int,
                checkpoints_dir: Path, stage_config, budgets: _Budgets, steps, monitor,
-               penalty: PenaltyScale, callback, log, progress: Progress, learner, env_state,
-               history, key):
+               penalty: ScheduleScale, assist: ScheduleScale, callback, log,
+               progress: Progress, learner, env_state, history, key):
     self.config, self.net_cfg, self.names, self.seed = config, net_cfg, names, seed
     self.checkpoints_dir, self.stage_config = checkpoints_dir, stage_config
     self.budgets, self.steps, self.monitor, self.penalty = budgets, steps, monitor, penalty
+    self.assist = assist
+    self.assist_newtons = float(config.assist.force) if config.assist else 0.0
     self.callback, self.log, self.progress = callback, log, progress
     self.n_dev = len(devices)
     self.sharding = _device_sharding(devices)
@@ -548,10 +561,12 @@ class _StageRun:
     self.key, k_iter = jax.random.split(self.key)
     t0 = time.perf_counter()
     scale = progress.penalty_scale
+    # The adaptation module learns under deployment's conditions: no assist.
+    force = self.assist_newtons * progress.assist_scale if phase == "ppo" else 0.0
+    schedules = jnp.tile(jnp.asarray([scale, force], jnp.float32), (self.n_dev, 1))
     self.learner, self.env_state, self.history, metrics, stats = self.steps[phase](
         self.learner, self.env_state, self.history,
-        _put(jax.random.split(k_iter, self.n_dev), self.sharding),
-        _put(jnp.full((self.n_dev,), scale, jnp.float32), self.sharding))
+        _put(jax.random.split(k_iter, self.n_dev), self.sharding), _put(schedules, self.sharding))
     metrics, stats = jax.device_get((_unreplicate(metrics), _unreplicate(stats)))
     dt = time.perf_counter() - t0
     steps = self.budgets.steps_per_iter
@@ -560,11 +575,13 @@ class _StageRun:
     report = {"iteration": progress.iteration, "env_steps": progress.env_steps,
               "steps_per_s": steps / max(dt, 1e-9), "total_env_steps": total,
               "phase": phase, "losses": {k: float(v) for k, v in metrics.items()},
-              "penalty_scale": scale}
+              "penalty_scale": scale, "assist_force": force}
     report.update(_summarize(stats))
     if phase == "ppo":
       progress.penalty_scale = self.penalty.after(scale, progress.ppo_env_steps,
                                                   report["stand_rate"])
+      progress.assist_scale = self.assist.after(progress.assist_scale, progress.ppo_env_steps,
+                                                report["stand_rate"])
       last = progress.ppo_env_steps >= self.budgets.ppo
       if self.monitor is not None and monitor_lib.is_due(progress.iteration,
                                                          config.monitor.every, last):

@@ -132,6 +132,29 @@ def test_staggered_clocks_end_first_episodes_at_different_steps(upright_env):
   assert np.all(np.asarray(state.episode_limit) == env.episode_steps)
 
 
+def test_assist_force_lifts_the_trunk_and_survives_resets():
+  env = FallRecoveryEnv(_stage(), backend="native")
+  y = jnp.asarray([0.0, 1.0, 0.0], jnp.float32)
+  supine = axis_angle_quat(y, -math.pi / 2)
+  start = _reset_to_pose(env, supine, 0.15, n=2)
+  weight = float(env.mj_model.body_subtreemass[env.trunk]) * 9.81
+  lifted = env.with_assist_force(start, jnp.asarray([0.0, 2.0 * weight]))
+  assert np.allclose(np.asarray(lifted.assist_force), [0.0, 2.0 * weight])
+  step = jax.jit(env.step)
+  a = jnp.zeros((2, env.action_size))
+  for _ in range(10):
+    lifted = step(lifted, a)
+  height = np.asarray(env.backend.view(lifted.physics).qpos[:, 2])
+  assert height[0] < 0.2 and height[1] > 0.3  # twice the weight pulls the robot up
+  # The schedule's value holds across auto-resets (only the learner changes it) and a
+  # fresh reset has none (evaluation never sees an assist).
+  done = lifted.replace(episode_limit=lifted.step_count + 1)
+  after = step(done, a)
+  assert float(after.done[1]) == 1.0
+  assert float(after.assist_force[1]) == pytest.approx(2.0 * weight)
+  assert np.all(np.asarray(start.assist_force) == 0.0)
+
+
 # -- learner: std bound, penalty schedule -------------------------------------------------------
 
 
@@ -169,16 +192,34 @@ def test_max_action_std_is_validated():
 
 def test_penalty_schedule_by_env_steps_and_by_stand_rate():
   by_steps = config.PenaltySchedule("env_steps", ((0.0, 0.0), (100.0, 0.0), (300.0, 1.0)))
-  scale = train_lib.PenaltyScale(by_steps)
+  scale = train_lib.ScheduleScale(by_steps)
   assert scale.initial == 0.0
   assert [scale.after(0.0, s, None) for s in (50, 100, 200, 300, 900)] == [0, 0, 0.5, 1, 1]
-  by_rate = train_lib.PenaltyScale(config.PenaltySchedule("stand_rate", ((0.2, 0.0),
-                                                                        (0.6, 1.0))))
+  by_rate = train_lib.ScheduleScale(config.PenaltySchedule("stand_rate", ((0.2, 0.0),
+                                                                         (0.6, 1.0))))
   s = by_rate.after(by_rate.initial, 0, 0.4)
   assert s == pytest.approx(0.5)
   assert by_rate.after(s, 0, 0.1) == pytest.approx(0.5)  # a ratchet: it never goes back
   assert by_rate.after(s, 0, None) == pytest.approx(0.5)
-  assert train_lib.PenaltyScale(None).after(0.3, 10, 0.5) == 1.0
+  assert train_lib.ScheduleScale(None).after(0.3, 10, 0.5) == 1.0
+
+
+def test_assist_schedule_ratchets_down_and_is_validated():
+  fade = config.PenaltySchedule("stand_rate", ((0.0, 1.0), (0.5, 0.0)))
+  assist = train_lib.ScheduleScale(fade, ratchet=min)
+  assert assist.initial == 1.0
+  s = assist.after(1.0, 0, 0.25)
+  assert s == pytest.approx(0.5)
+  assert assist.after(s, 0, 0.0) == pytest.approx(0.5)  # a dip does not bring the force back
+  d = default_stage_dict("planar")
+  d["assist"] = {"force": 150.0, "schedule": {"by": "stand_rate", "points": [[0, 1], [0.5, 0]]}}
+  assert config.check_stage(d) == []
+  stage = config.StageConfig.from_dict(d)
+  assert stage.assist == config.AssistConfig(150.0, fade)
+  assert train_lib.LearnerConfig.from_stage(stage).assist == stage.assist
+  d["assist"] = {"force": -1.0, "schedul": {}}
+  assert sorted(tuple(e["path"]) for e in config.check_stage(d)) == [("assist", "force"),
+                                                                     ("assist", "schedul")]
 
 
 def test_new_sections_are_validated_with_key_paths():

@@ -75,8 +75,9 @@ def test_progress_reports_follow_the_contract(learned):
   r = rec.reports[0]
   assert set(r) == {"iteration", "env_steps", "steps_per_s", "total_env_steps", "phase",
                     "losses", "rewards", "stand_rate", "recovery_time", "episode_return",
-                    "penalty_scale"}
+                    "penalty_scale", "assist_force"}
   assert all(x["penalty_scale"] == 1.0 for x in rec.reports)  # no schedule: full penalties
+  assert all(x["assist_force"] == 0.0 for x in rec.reports)  # no assist
   assert [x["iteration"] for x in rec.reports] == list(range(1, 101))
   assert [x["env_steps"] for x in rec.reports] == [ITER_STEPS * i for i in range(1, 101)]
   assert r["total_env_steps"] == 160 * 1024

@@ -3,8 +3,9 @@
 //! The Rust side (`curriculum::load`) checks syntax, keys, types, ranges and names (against the
 //! vocabularies jax_env exports, `crate::names`); the Python side (`facade.check_stage`) checks
 //! the stage's meaning, including the ranges of the optional tables Rust types only for their
-//! keys (`reward_shaping`, `termination`, `monitor`). Python answers with key paths inside a
-//! stage; they are mapped back to `FILE:LINE:COL` here, so both kinds of error read the same.
+//! keys (`reward_shaping`, `termination`, `monitor`, `assist`). Python answers with key paths
+//! inside a stage; they are mapped back to `FILE:LINE:COL` here, so both kinds of error read
+//! the same.
 
 use std::path::Path;
 

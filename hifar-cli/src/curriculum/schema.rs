@@ -7,7 +7,8 @@
 //! Serialization gives back exactly the keys of the file (optional keys that were absent stay
 //! absent), which is the stage table Python receives.
 //!
-//! The optional tables `[stage.reward_shaping]`, `[stage.termination]`, `[stage.monitor]` (and
+//! The optional tables `[stage.reward_shaping]`, `[stage.termination]`, `[stage.monitor]`,
+//! `[stage.assist]` (and
 //! the optional keys `reward_params.waist_height_target`, `reward_params.dof_pos_ref_band`,
 //! `ppo.max_action_std`) are typed here only for their keys and types; their ranges and
 //! meaning are checked by Python (`jax_env/config.py`, `check_stage`), whose key paths
@@ -79,6 +80,8 @@ pub struct StageTable {
     pub advance: Advance,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub monitor: Option<Monitor>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub assist: Option<Assist>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -209,6 +212,17 @@ pub struct Termination {
     pub upside_down: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub side_roll: Option<f64>,
+}
+
+/// `[stage.assist]`: an upward force on the Trunk during training, scaled by a schedule
+/// (jax_env/config.py owns the semantics and the range checks; every key is optional).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Assist {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub force: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub schedule: Option<PenaltySchedule>,
 }
 
 /// `[stage.monitor]`: the deterministic-policy monitor run during training (jax_env/config.py

@@ -232,7 +232,8 @@ fn tiny_with_new_keys() -> String {
         "{first}[stage.reward_shaping]\nscale_by_ctrl_dt = true\nclip_at_zero = false\n\
          penalty_schedule = {{ by = \"env_steps\", points = [[0, 0.1], [1_000, 1.0]] }}\n\n\
          [stage.termination]\nlow_height = 0.2\nlow_height_s = 1.0\nupside_down = 0.5\nside_roll = 0.0\n\n\
-         [stage.monitor]\nevery = 10\nepisodes = 4\nscenarios = [\"supine\", \"stand\", \"squat\"]\n\n{rest}"
+         [stage.monitor]\nevery = 10\nepisodes = 4\nscenarios = [\"supine\", \"stand\", \"squat\"]\n\n\
+         [stage.assist]\nforce = 150.0\nschedule = {{ by = \"stand_rate\", points = [[0, 1.0], [0.5, 0.0]] }}\n\n{rest}"
     )
 }
 
@@ -256,6 +257,10 @@ fn new_optional_keys_parse_and_reach_python_as_written() {
     );
     assert_eq!(stage["termination"], json!({"low_height": 0.2, "low_height_s": 1.0, "upside_down": 0.5, "side_roll": 0.0}));
     assert_eq!(stage["monitor"], json!({"every": 10, "episodes": 4, "scenarios": ["supine", "stand", "squat"]}));
+    assert_eq!(
+        stage["assist"],
+        json!({"force": 150.0, "schedule": {"by": "stand_rate", "points": [[0.0, 1.0], [0.5, 0.0]]}})
+    );
     // A JSON round trip gives the same stage.
     let back: Stage = serde_json::from_value(stage.clone()).unwrap();
     assert_eq!(back.to_json(), stage);
@@ -267,7 +272,7 @@ fn new_optional_keys_parse_and_reach_python_as_written() {
     assert_eq!(stage["reward_shaping"].as_object().unwrap().keys().collect::<Vec<_>>(), ["penalty_schedule"]);
     assert_eq!(stage["monitor"].as_object().unwrap().keys().collect::<Vec<_>>(), ["every", "scenarios"]);
     let full = c.stages()[1].to_json();
-    for key in ["reward_shaping", "termination", "monitor"] {
+    for key in ["reward_shaping", "termination", "monitor", "assist"] {
         assert!(full.get(key).is_none(), "{key} stays absent");
     }
     assert!(full["ppo"].get("max_action_std").is_none());
@@ -286,6 +291,7 @@ fn mistakes_in_the_new_tables_have_a_position() {
         ("by = \"env_steps\"", "by = \"steps\"", "by = ", "unknown value `steps` for stage.reward_shaping.penalty_schedule.by; expected one of `env_steps` or `stand_rate`"),
         ("[1_000, 1.0]]", "[1_000, 1.0, 2.0]]", "penalty_schedule", "invalid length 3, expected an array of two numbers [x, scale]"),
         ("points = [[0", "point = [[0", "penalty_schedule", "unknown key `point` in [stage.reward_shaping.penalty_schedule]; valid keys: `by` or `points`"),
+        ("force = 150.0", "force = \"strong\"", "force = \"strong", "assist.force: invalid type: string \"strong\", expected a number"),
         ("max_action_std = 1.5", "max_action_std = \"big\"", "max_action_std", "ppo.max_action_std: invalid type: string \"big\", expected a number"),
         ("waist_height = 0.5", "waist_hieght = 0.5", "waist_hieght", "unknown reward term `waist_hieght` in [stage.rewards]"),
     ];
