@@ -755,7 +755,8 @@ impl Monitor {
 }
 
 /// The advance criterion of a stage: the mean stand rate of its last `window` PPO progress
-/// reports (reports without finished episodes do not count) against `min_stand_rate`.
+/// reports (reports without finished episodes, or made with an assisting force on, do not
+/// count) against `min_stand_rate`.
 #[derive(Debug)]
 struct AdvanceWindow {
     threshold: Option<Threshold>,
@@ -774,6 +775,11 @@ impl AdvanceWindow {
     fn observe(&mut self, progress: &Value) -> bool {
         if progress.get("phase").and_then(Value::as_str).unwrap_or("ppo") != "ppo" {
             return false;
+        }
+        // With `[stage.assist]` pulling the Trunk up, standing says nothing about the policy
+        // on its own: those reports neither end the stage nor count as its best.
+        if progress.get("assist_force").and_then(Value::as_f64).is_some_and(|force| force > 0.0) {
+            return self.threshold_met;
         }
         let Some(rate) = progress.get("stand_rate").and_then(Value::as_f64) else { return self.threshold_met };
         self.best_stand_rate = Some(self.best_stand_rate.map_or(rate, |best| best.max(rate)));
@@ -854,6 +860,19 @@ mod tests {
         assert!(!advance.observe(&report("adaptation", Some(1.0))), "adaptation reports do not count");
         assert!(advance.observe(&report("ppo", Some(1.0))), "mean(0.0, 1.0) = 0.5 meets 0.5");
         assert_eq!(advance.best_stand_rate, Some(1.0));
+    }
+
+    #[test]
+    fn assisted_reports_are_not_judged() {
+        let threshold = Threshold { min_stand_rate: 0.5, window: 2, on_miss_continue: false };
+        let mut advance = AdvanceWindow::new(Some(threshold));
+        let assisted = json!({"phase": "ppo", "stand_rate": 1.0, "assist_force": 90.0});
+        assert!(!advance.observe(&assisted));
+        assert!(!advance.observe(&assisted), "an assisted stand rate never ends the stage");
+        assert_eq!(advance.best_stand_rate, None);
+        let unassisted = json!({"phase": "ppo", "stand_rate": 0.6, "assist_force": 0.0});
+        assert!(!advance.observe(&unassisted));
+        assert!(advance.observe(&unassisted));
     }
 
     #[test]
