@@ -5,12 +5,16 @@
 //! site-packages are removed from `sys.path` and the venv's are added with `site.addsitedir`
 //! (so the `.pth` file of the editable `jax_env` install is honoured), which is what a
 //! `bin/python` of that venv would see. Everything crosses the boundary as JSON-like values
-//! (dict/list/str/float/int/bool/None), converted here from and to [`serde_json::Value`].
+//! (dict/list/str/float/int/bool/None), converted here from and to [`serde_json::Value`],
+//! except bulk numbers: a result's NumPy float arrays are read through the buffer protocol in
+//! one copy ([`Facade::call_with_arrays`]) rather than value by value.
 
+use std::collections::BTreeMap;
 use std::ffi::CString;
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, OnceLock};
 
+use pyo3::buffer::PyUntypedBuffer;
 use pyo3::prelude::*;
 use pyo3::types::{PyBool, PyCFunction, PyDict, PyFloat, PyInt, PyList, PyString, PyTuple};
 use serde_json::{Map, Number, Value};
@@ -287,6 +291,91 @@ impl Facade {
     }
 }
 
+/// A float array handed over by Python: its shape and its values in C (row-major) order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Array<T> {
+    pub shape: Vec<usize>,
+    pub data: Vec<T>,
+}
+
+/// A float array of either width, as Python computed it (nothing is rounded on the way).
+#[derive(Debug, Clone, PartialEq)]
+pub enum FloatArray {
+    F32(Array<f32>),
+    F64(Array<f64>),
+}
+
+impl FloatArray {
+    pub fn shape(&self) -> &[usize] {
+        match self {
+            FloatArray::F32(a) => &a.shape,
+            FloatArray::F64(a) => &a.shape,
+        }
+    }
+
+    pub fn dtype(&self) -> &'static str {
+        match self {
+            FloatArray::F32(_) => "float32",
+            FloatArray::F64(_) => "float64",
+        }
+    }
+}
+
+/// The float arrays of a result, by key.
+pub type Arrays = BTreeMap<String, FloatArray>;
+
+impl Facade {
+    /// `jax_env.facade.<name>(*args)` for a function that returns a dict: its float32 and
+    /// float64 arrays (anything exposing the buffer protocol with such items, i.e. NumPy
+    /// arrays) come back as [`Arrays`], every other entry as JSON.
+    pub fn call_with_arrays(&self, name: &str, args: &[Value]) -> PyOutcome<(Value, Arrays)> {
+        Python::attach(|py| {
+            let run = || -> PyResult<(Value, Arrays)> {
+                let args: Vec<Bound<'_, PyAny>> =
+                    args.iter().map(|arg| to_py(py, arg)).collect::<PyResult<_>>()?;
+                let result = self.module.bind(py).getattr(name)?.call1(PyTuple::new(py, args)?)?;
+                let dict = result.cast::<PyDict>().map_err(|_| {
+                    pyo3::exceptions::PyTypeError::new_err(format!("facade.{name} returned no dict"))
+                })?;
+                let (mut rest, mut arrays) = (Map::new(), Arrays::new());
+                for (key, item) in dict.iter() {
+                    let key: String = key.extract()?;
+                    match float_array(&item)? {
+                        Some(array) => {
+                            arrays.insert(key, array);
+                        }
+                        None => {
+                            rest.insert(key, to_json(&item)?);
+                        }
+                    }
+                }
+                Ok((Value::Object(rest), arrays))
+            };
+            run().map_err(|err| PythonError::from_pyerr(py, err))
+        })
+    }
+}
+
+/// The object's values in one copy when it exposes the buffer protocol with float32 or float64
+/// items (a NumPy array of either dtype, contiguous or not), else None.
+fn float_array(obj: &Bound<'_, PyAny>) -> PyResult<Option<FloatArray>> {
+    if obj.cast::<PyString>().is_ok() || obj.is_none() {
+        return Ok(None);
+    }
+    let Ok(buffer) = PyUntypedBuffer::get(obj) else {
+        return Ok(None);
+    };
+    let py = obj.py();
+    let shape = buffer.shape().to_vec();
+    if let Ok(typed) = buffer.as_typed::<f32>() {
+        return Ok(Some(FloatArray::F32(Array { shape, data: typed.to_vec(py)? })));
+    }
+    if let Ok(typed) = buffer.as_typed::<f64>() {
+        return Ok(Some(FloatArray::F64(Array { shape, data: typed.to_vec(py)? })));
+    }
+    Ok(None)
+}
+
 /// Converts a JSON value into the matching Python object.
 fn to_py<'py>(py: Python<'py>, value: &Value) -> PyResult<Bound<'py, PyAny>> {
     Ok(match value {
@@ -400,6 +489,24 @@ mod tests {
             to_json(&obj).unwrap()
         });
         assert_eq!(back, json!([null, 1, [2, 3]]));
+    }
+
+    #[test]
+    fn float_arrays_are_read_whole_with_their_shape_and_width() {
+        let (f32s, f64s, strided, ints) = Python::attach(|py| {
+            let array = |code: &std::ffi::CStr| float_array(&py.eval(code, None, None).unwrap()).unwrap();
+            // memoryview.cast gives typed, shaped buffers without NumPy.
+            (
+                array(c"memoryview(__import__('array').array('f', [0.1, 2, 3, 4, 5, 6]).tobytes()).cast('f', [2, 3])"),
+                array(c"memoryview(__import__('array').array('d', [0.1, 2]).tobytes()).cast('d')"),
+                array(c"memoryview(__import__('array').array('d', [1, 2, 3, 4])).cast('B').cast('d')[::2]"),
+                array(c"memoryview(__import__('array').array('i', [1, 2]))"),
+            )
+        });
+        assert_eq!(f32s, Some(FloatArray::F32(Array { shape: vec![2, 3], data: vec![0.1f32, 2.0, 3.0, 4.0, 5.0, 6.0] })));
+        assert_eq!(f64s, Some(FloatArray::F64(Array { shape: vec![2], data: vec![0.1, 2.0] })));
+        assert_eq!(strided, Some(FloatArray::F64(Array { shape: vec![2], data: vec![1.0, 3.0] })));
+        assert_eq!(ints, None, "integer buffers stay JSON");
     }
 
     #[test]

@@ -1,8 +1,10 @@
 //! Episode recordings as MCAP files that Foxglove opens (docs/contracts.md, "facade.rollout").
 //!
-//! `facade.rollout` returns the episode as per-step lists; [`Recording::from_value`] checks
-//! their shapes into a typed recording, and [`write_mcap`] writes it: JSON-encoded messages
-//! with `jsonschema` schemas, log and publish times the simulated time in nanoseconds.
+//! `facade.rollout` returns the episode as per-step NumPy arrays, read in one copy each
+//! (`python::Facade::call_with_arrays`); [`Recording::from_result`] checks their shapes and
+//! dtypes into a typed recording, and [`write_mcap`] writes it: JSON-encoded messages with
+//! `jsonschema` schemas, log and publish times the simulated time in nanoseconds. What the
+//! values mean (times, poses, names of geoms' bodies) is Python's to get right.
 //!
 //! | topic           | schema                   | messages                                      |
 //! |-----------------|--------------------------|-----------------------------------------------|
@@ -26,6 +28,7 @@ use serde::Deserialize;
 use serde_json::{json, Map, Value};
 
 use crate::atomic;
+use crate::python::{Array, Arrays, FloatArray};
 
 /// Channels in the order they are added to the file.
 pub const TOPICS: [&str; 7] = ["/tf", "/scene", "/joint_states", "/torso_pitch", "/rewards", "/standing", "/push"];
@@ -65,24 +68,13 @@ pub enum GeomKind {
     Box,
 }
 
-/// What `facade.rollout` returns, as read (shapes unchecked).
+/// The JSON part of what `facade.rollout` returns; the per-step arrays come beside it.
 #[derive(Debug, Deserialize)]
 struct Raw {
     dt: f64,
-    time: Vec<f64>,
     body_names: Vec<String>,
-    body_pos: Vec<Vec<[f64; 3]>>,
-    body_quat: Vec<Vec<[f64; 4]>>,
     joint_names: Vec<String>,
-    joint_pos: Vec<Vec<f64>>,
-    joint_vel: Vec<Vec<f64>>,
-    joint_torque: Vec<Vec<f64>>,
-    torso_pitch: Vec<f64>,
-    reward: Vec<f64>,
-    reward_terms: Map<String, Value>,
-    standing: Vec<f64>,
-    succeeded: Vec<f64>,
-    push_force: Vec<[f64; 3]>,
+    reward_term_names: Vec<String>,
     push_direction: String,
     success: bool,
     recovery_time: Option<f64>,
@@ -93,26 +85,102 @@ struct Raw {
     filmstrip: Option<PathBuf>,
 }
 
-/// One recorded episode, every per-step list checked to have one entry per step.
+/// One value or a row of `width` values per step, in step order (an array [T, …] as Python
+/// computed it: float32 for what the environment computed, float64 for what the host did).
+#[derive(Debug, Clone)]
+pub struct Steps<T> {
+    data: Vec<T>,
+    width: usize,
+}
+
+impl<T: Copy> Steps<T> {
+    pub fn row(&self, t: usize) -> &[T] {
+        &self.data[t * self.width..(t + 1) * self.width]
+    }
+
+    /// Row `t` of a quantity with `N` values a step (checked when the recording was made).
+    pub fn row_of<const N: usize>(&self, t: usize) -> [T; N] {
+        self.row(t).try_into().expect("the row width was checked")
+    }
+
+    pub fn at(&self, t: usize) -> T {
+        self.data[t * self.width]
+    }
+}
+
+impl Steps<f32> {
+    /// Row `t` widened to f64 (exactly: every f32 is an f64), as the JSON messages carry it.
+    fn row_f64(&self, t: usize) -> Vec<f64> {
+        self.row(t).iter().map(|&v| f64::from(v)).collect()
+    }
+}
+
+/// The element type of an array field of the rollout result.
+trait Element: Copy + Sized {
+    const DTYPE: &'static str;
+    fn of(array: FloatArray) -> Option<Array<Self>>;
+}
+
+impl Element for f32 {
+    const DTYPE: &'static str = "float32";
+    fn of(array: FloatArray) -> Option<Array<f32>> {
+        match array {
+            FloatArray::F32(a) => Some(a),
+            FloatArray::F64(_) => None,
+        }
+    }
+}
+
+impl Element for f64 {
+    const DTYPE: &'static str = "float64";
+    fn of(array: FloatArray) -> Option<Array<f64>> {
+        match array {
+            FloatArray::F64(a) => Some(a),
+            FloatArray::F32(_) => None,
+        }
+    }
+}
+
+/// Array `name` of the result, which must be `T`s of shape [steps, *row]: the one check that
+/// makes indexing by step and row safe. Values are Python's to get right.
+fn take<T: Element>(arrays: &mut Arrays, name: &str, steps: Option<usize>, row: &[usize]) -> Result<(Steps<T>, usize), RecordingError> {
+    let array = arrays.remove(name).ok_or_else(|| malformed(format!("{name} is missing or not a float array")))?;
+    let (shape, dtype) = (array.shape().to_vec(), array.dtype());
+    let fits = shape.len() == 1 + row.len() && shape[1..] == *row && steps.is_none_or(|t| shape[0] == t);
+    let expected = || {
+        let first = steps.map_or_else(|| "T".to_owned(), |t| t.to_string());
+        let dims: Vec<String> = std::iter::once(first).chain(row.iter().map(usize::to_string)).collect();
+        format!("[{}] {}", dims.join(", "), T::DTYPE)
+    };
+    match T::of(array) {
+        Some(array) if fits => Ok((Steps { width: row.iter().product(), data: array.data }, shape[0])),
+        _ => Err(malformed(format!("{name} is {shape:?} {dtype}, expected {}", expected()))),
+    }
+}
+
+/// One recorded episode, every per-step array checked to have one entry per step.
 #[derive(Debug)]
 pub struct Recording {
     pub dt: f64,
-    pub time: Vec<f64>,
+    pub time: Steps<f64>,
     pub body_names: Vec<String>,
-    pub body_pos: Vec<Vec<[f64; 3]>>,
-    pub body_quat: Vec<Vec<[f64; 4]>>,
+    /// [T, body, 3] (world, m).
+    pub body_pos: Steps<f64>,
+    /// [T, body, 4] (w, x, y, z).
+    pub body_quat: Steps<f64>,
     pub joint_names: Vec<String>,
-    pub joint_pos: Vec<Vec<f64>>,
-    pub joint_vel: Vec<Vec<f64>>,
-    pub joint_torque: Vec<Vec<f64>>,
-    pub torso_pitch: Vec<f64>,
-    pub reward: Vec<f64>,
-    /// Weighted per-step reward of every term, in the order Python lists them.
-    pub reward_terms: Vec<(String, Vec<f64>)>,
+    pub joint_pos: Steps<f32>,
+    pub joint_vel: Steps<f32>,
+    pub joint_torque: Steps<f32>,
+    pub torso_pitch: Steps<f64>,
+    pub reward: Steps<f32>,
+    /// Weighted per-step reward of every term, [T, term], terms in the order Python lists them.
+    pub reward_term_names: Vec<String>,
+    pub reward_terms: Steps<f32>,
     pub standing: Vec<bool>,
     /// Stable standing reached at or before this step (the success detector, latched).
     pub succeeded: Vec<bool>,
-    pub push_force: Vec<[f64; 3]>,
+    pub push_force: Steps<f32>,
     /// The torso-frame direction of the push (Python's default where none was asked for).
     pub push_direction: String,
     pub success: bool,
@@ -120,101 +188,59 @@ pub struct Recording {
     pub geoms: Vec<Geom>,
     pub video: Option<PathBuf>,
     pub filmstrip: Option<PathBuf>,
+    steps: usize,
 }
 
 fn malformed(message: String) -> RecordingError {
     RecordingError::Malformed(message)
 }
 
-fn same_len<T>(name: &str, list: &[T], steps: usize) -> Result<(), RecordingError> {
-    if list.len() == steps {
-        Ok(())
-    } else {
-        Err(malformed(format!("{name} has {} entries, time has {steps}", list.len())))
-    }
-}
-
-fn rows_of<T>(name: &str, rows: &[Vec<T>], width: usize, of: &str) -> Result<(), RecordingError> {
-    match rows.iter().position(|row| row.len() != width) {
-        None => Ok(()),
-        Some(t) => Err(malformed(format!("{name}[{t}] has {} entries, expected one per {of} ({width})", rows[t].len()))),
-    }
-}
-
 impl Recording {
-    /// Checks the result of `facade.rollout` into a recording.
-    pub fn from_value(value: Value) -> Result<Recording, RecordingError> {
+    /// The result of `facade.rollout` (its JSON part and its arrays) as a recording.
+    pub fn from_result(value: Value, mut arrays: Arrays) -> Result<Recording, RecordingError> {
         let raw: Raw = serde_json::from_value(value).map_err(|err| malformed(err.to_string()))?;
-        let steps = raw.time.len();
+        let (time, steps) = take::<f64>(&mut arrays, "time", None, &[])?;
         if steps == 0 {
             return Err(malformed("the episode has no steps".into()));
         }
-        if !(raw.dt.is_finite() && raw.dt > 0.0) {
-            return Err(malformed(format!("dt {} is not a positive number of seconds", raw.dt)));
-        }
-        if raw.time.windows(2).any(|w| w[1] < w[0]) || raw.time[0] < 0.0 {
-            return Err(malformed("time is not a non-negative, non-decreasing list of seconds".into()));
-        }
-        same_len("body_pos", &raw.body_pos, steps)?;
-        same_len("body_quat", &raw.body_quat, steps)?;
-        rows_of("body_pos", &raw.body_pos, raw.body_names.len(), "body")?;
-        rows_of("body_quat", &raw.body_quat, raw.body_names.len(), "body")?;
-        for (name, rows) in [("joint_pos", &raw.joint_pos), ("joint_vel", &raw.joint_vel), ("joint_torque", &raw.joint_torque)] {
-            same_len(name, rows, steps)?;
-            rows_of(name, rows, raw.joint_names.len(), "joint")?;
-        }
-        for (name, list) in
-            [("torso_pitch", &raw.torso_pitch), ("reward", &raw.reward), ("standing", &raw.standing), ("succeeded", &raw.succeeded)]
-        {
-            same_len(name, list, steps)?;
-        }
-        same_len("push_force", &raw.push_force, steps)?;
-        let mut reward_terms = Vec::with_capacity(raw.reward_terms.len());
-        for (term, values) in raw.reward_terms {
-            let values: Vec<f64> = serde_json::from_value(values).map_err(|err| malformed(format!("reward_terms.{term}: {err}")))?;
-            same_len(&format!("reward_terms.{term}"), &values, steps)?;
-            reward_terms.push((term, values));
-        }
-        for geom in &raw.geoms {
-            if geom.body != WORLD_FRAME && !raw.body_names.contains(&geom.body) {
-                return Err(malformed(format!(
-                    "geom {} belongs to {:?}, which is neither a recorded body nor {WORLD_FRAME:?}",
-                    geom.name, geom.body
-                )));
-            }
-        }
+        let a = &mut arrays;
+        let t = Some(steps);
+        let (bodies, joints, terms) = (raw.body_names.len(), raw.joint_names.len(), raw.reward_term_names.len());
+        let flag = |steps: Steps<f32>| steps.data.iter().map(|&v| v > 0.5).collect();
         Ok(Recording {
             dt: raw.dt,
-            time: raw.time,
+            time,
+            body_pos: take(a, "body_pos", t, &[bodies, 3])?.0,
+            body_quat: take(a, "body_quat", t, &[bodies, 4])?.0,
+            joint_pos: take(a, "joint_pos", t, &[joints])?.0,
+            joint_vel: take(a, "joint_vel", t, &[joints])?.0,
+            joint_torque: take(a, "joint_torque", t, &[joints])?.0,
+            torso_pitch: take(a, "torso_pitch", t, &[])?.0,
+            reward: take(a, "reward", t, &[])?.0,
+            reward_terms: take(a, "reward_terms", t, &[terms])?.0,
+            standing: flag(take(a, "standing", t, &[])?.0),
+            succeeded: flag(take(a, "succeeded", t, &[])?.0),
+            push_force: take(a, "push_force", t, &[3])?.0,
             body_names: raw.body_names,
-            body_pos: raw.body_pos,
-            body_quat: raw.body_quat,
             joint_names: raw.joint_names,
-            joint_pos: raw.joint_pos,
-            joint_vel: raw.joint_vel,
-            joint_torque: raw.joint_torque,
-            torso_pitch: raw.torso_pitch,
-            reward: raw.reward,
-            reward_terms,
-            standing: raw.standing.iter().map(|&v| v > 0.5).collect(),
-            succeeded: raw.succeeded.iter().map(|&v| v > 0.5).collect(),
-            push_force: raw.push_force,
+            reward_term_names: raw.reward_term_names,
             push_direction: raw.push_direction,
             success: raw.success,
             recovery_time: raw.recovery_time,
             geoms: raw.geoms,
             video: raw.video,
             filmstrip: raw.filmstrip,
+            steps,
         })
     }
 
     pub fn steps(&self) -> usize {
-        self.time.len()
+        self.steps
     }
 
     /// Simulated duration covered by the recording (s).
     pub fn duration_s(&self) -> f64 {
-        self.time.last().copied().unwrap_or(0.0)
+        self.time.at(self.steps - 1)
     }
 }
 
@@ -420,8 +446,8 @@ fn joint_states_schema() -> Value {
     )
 }
 
-fn rewards_schema(terms: &[(String, Vec<f64>)]) -> Value {
-    let props: Vec<(&str, Value)> = terms.iter().map(|(t, _)| (t.as_str(), s_number())).collect();
+fn rewards_schema(terms: &[String]) -> Value {
+    let props: Vec<(&str, Value)> = terms.iter().map(|t| (t.as_str(), s_number())).collect();
     s_object("hifar.Rewards", &[("timestamp", s_time()), ("total", s_number()), ("terms", s_object("hifar.RewardTerms", &props))])
 }
 
@@ -432,7 +458,7 @@ fn channels(rec: &Recording) -> Vec<(&'static str, &'static str, Value)> {
         ("/scene", "foxglove.SceneUpdate", scene_update_schema()),
         ("/joint_states", "hifar.JointStates", joint_states_schema()),
         ("/torso_pitch", "hifar.TorsoPitch", s_object("hifar.TorsoPitch", &[("timestamp", s_time()), ("pitch", s_number())])),
-        ("/rewards", "hifar.Rewards", rewards_schema(&rec.reward_terms)),
+        ("/rewards", "hifar.Rewards", rewards_schema(&rec.reward_term_names)),
         (
             "/standing",
             "hifar.Standing",
@@ -454,6 +480,7 @@ fn channels(rec: &Recording) -> Vec<(&'static str, &'static str, Value)> {
 
 /// The messages of step `t`, by topic (without `/scene`).
 fn step_messages(rec: &Recording, t: usize, ns: u64) -> [(&'static str, Value); 6] {
+    let (pos, quat) = (rec.body_pos.row(t), rec.body_quat.row(t));
     let transforms: Vec<Value> = rec
         .body_names
         .iter()
@@ -461,23 +488,25 @@ fn step_messages(rec: &Recording, t: usize, ns: u64) -> [(&'static str, Value); 
         .map(|(b, name)| {
             json!({
                 "timestamp": stamp(ns), "parent_frame_id": WORLD_FRAME, "child_frame_id": name,
-                "translation": vector3(rec.body_pos[t][b]), "rotation": quaternion(rec.body_quat[t][b]),
+                "translation": vector3(pos[3 * b..3 * b + 3].try_into().expect("3 values a body")),
+                "rotation": quaternion(quat[4 * b..4 * b + 4].try_into().expect("4 values a body")),
             })
         })
         .collect();
-    let terms: Map<String, Value> = rec.reward_terms.iter().map(|(term, v)| (term.clone(), json!(v[t]))).collect();
-    let f = rec.push_force[t];
+    let terms: Map<String, Value> =
+        rec.reward_term_names.iter().zip(rec.reward_terms.row(t)).map(|(term, &v)| (term.clone(), json!(f64::from(v)))).collect();
+    let f = rec.push_force.row_of::<3>(t).map(f64::from);
     [
         ("/tf", json!({"transforms": transforms})),
         (
             "/joint_states",
             json!({
-                "timestamp": stamp(ns), "name": rec.joint_names, "position": rec.joint_pos[t],
-                "velocity": rec.joint_vel[t], "effort": rec.joint_torque[t],
+                "timestamp": stamp(ns), "name": rec.joint_names, "position": rec.joint_pos.row_f64(t),
+                "velocity": rec.joint_vel.row_f64(t), "effort": rec.joint_torque.row_f64(t),
             }),
         ),
-        ("/torso_pitch", json!({"timestamp": stamp(ns), "pitch": rec.torso_pitch[t]})),
-        ("/rewards", json!({"timestamp": stamp(ns), "total": rec.reward[t], "terms": terms})),
+        ("/torso_pitch", json!({"timestamp": stamp(ns), "pitch": rec.torso_pitch.at(t)})),
+        ("/rewards", json!({"timestamp": stamp(ns), "total": f64::from(rec.reward.at(t)), "terms": terms})),
         ("/standing", json!({"timestamp": stamp(ns), "standing": rec.standing[t], "success": rec.succeeded[t]})),
         (
             "/push",
@@ -507,10 +536,10 @@ pub fn encode(rec: &Recording, metadata: &BTreeMap<String, String>) -> Result<(V
         *count += 1;
         writer.write_to_known_channel(&header, &serde_json::to_vec(message).expect("messages serialize"))
     };
-    let start = nanos(rec.time[0]);
+    let start = nanos(rec.time.at(0));
     write(&mut writer, "/scene", start, &scene_update(rec, start))?;
     for t in 0..rec.steps() {
-        let ns = nanos(rec.time[t]);
+        let ns = nanos(rec.time.at(t));
         for (topic, message) in step_messages(rec, t, ns) {
             write(&mut writer, topic, ns, &message)?;
         }
@@ -532,18 +561,17 @@ pub fn write_mcap(path: &Path, rec: &Recording, metadata: &BTreeMap<String, Stri
 mod tests {
     use super::*;
 
-    fn tiny(steps: usize) -> Value {
-        let t: Vec<f64> = (0..steps).map(|i| i as f64 * 0.02).collect();
-        let per = |v: Value| Value::Array(vec![v; steps]);
+    /// Every step the same: one row `row` repeated `steps` times, as Python would send it.
+    fn per<T: Copy>(steps: usize, row: &[T], shape: &[usize]) -> Array<T> {
+        let shape = [steps].into_iter().chain(shape.iter().copied()).collect();
+        Array { shape, data: (0..steps).flat_map(|_| row.iter().copied()).collect() }
+    }
+
+    fn tiny(steps: usize) -> (Value, Arrays) {
         let h = std::f64::consts::FRAC_1_SQRT_2; // a quarter turn about x
-        json!({
-            "dt": 0.02, "time": t, "body_names": ["Trunk", "Waist"],
-            "body_pos": per(json!([[0.0, 0.0, 0.6], [0.0, 0.0, 0.5]])),
-            "body_quat": per(json!([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])),
-            "joint_names": ["Waist"], "joint_pos": per(json!([0.1])), "joint_vel": per(json!([0.0])),
-            "joint_torque": per(json!([1.5])), "torso_pitch": per(json!(0.2)), "reward": per(json!(1.0)),
-            "reward_terms": {"survival": per(json!(0.5)), "standing": per(json!(0.5))},
-            "standing": per(json!(1.0)), "succeeded": per(json!(0.0)), "push_force": per(json!([0.0, 0.0, 0.0])),
+        let value = json!({
+            "dt": 0.02, "body_names": ["Trunk", "Waist"], "joint_names": ["Waist"],
+            "reward_term_names": ["survival", "standing"],
             "push_direction": "backward", "success": false, "recovery_time": null,
             "geoms": [
                 {"name": "trunk", "body": "Trunk", "type": "box", "size": [0.1, 0.1, 0.2], "pos": [0.0, 0.0, 0.0], "quat": [1.0, 0.0, 0.0, 0.0], "rgba": [0.5, 0.5, 0.5, 1.0]},
@@ -551,12 +579,36 @@ mod tests {
                 {"name": "floor", "body": "world", "type": "box", "size": [10.0, 10.0, 0.01], "pos": [0.0, 0.0, -0.01], "quat": [1.0, 0.0, 0.0, 0.0], "rgba": [0.5, 0.5, 0.5, 1.0]}
             ],
             "video": null, "filmstrip": null
-        })
+        });
+        let time = Array { shape: vec![steps], data: (0..steps).map(|i| i as f64 * 0.02).collect() };
+        let arrays: Arrays = [
+            ("time", FloatArray::F64(time)),
+            ("body_pos", FloatArray::F64(per(steps, &[0.0, 0.0, 0.6, 0.0, 0.0, 0.5], &[2, 3]))),
+            ("body_quat", FloatArray::F64(per(steps, &[1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0], &[2, 4]))),
+            ("joint_pos", FloatArray::F32(per(steps, &[0.1], &[1]))),
+            ("joint_vel", FloatArray::F32(per(steps, &[0.0], &[1]))),
+            ("joint_torque", FloatArray::F32(per(steps, &[1.5], &[1]))),
+            ("torso_pitch", FloatArray::F64(per(steps, &[0.2], &[]))),
+            ("reward", FloatArray::F32(per(steps, &[1.0], &[]))),
+            ("reward_terms", FloatArray::F32(per(steps, &[0.5, 0.5], &[2]))),
+            ("standing", FloatArray::F32(per(steps, &[1.0], &[]))),
+            ("succeeded", FloatArray::F32(per(steps, &[0.0], &[]))),
+            ("push_force", FloatArray::F32(per(steps, &[0.0, 0.0, 0.0], &[3]))),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_owned(), v))
+        .collect();
+        (value, arrays)
+    }
+
+    fn recording(steps: usize) -> Recording {
+        let (value, arrays) = tiny(steps);
+        Recording::from_result(value, arrays).unwrap()
     }
 
     #[test]
     fn every_step_gets_one_message_per_topic_and_the_scene_one() {
-        let rec = Recording::from_value(tiny(5)).unwrap();
+        let rec = recording(5);
         let (bytes, counts) = encode(&rec, &BTreeMap::new()).unwrap();
         assert_eq!(counts["/scene"], 1);
         for topic in TOPICS.iter().filter(|t| **t != "/scene") {
@@ -572,7 +624,7 @@ mod tests {
 
     #[test]
     fn capsules_become_a_cylinder_and_two_spheres_along_the_geom_axis() {
-        let rec = Recording::from_value(tiny(1)).unwrap();
+        let rec = recording(1);
         let scene = scene_update(&rec, 0);
         let entities = scene["entities"].as_array().unwrap();
         assert_eq!(entities.len(), 3, "Trunk, Waist and the world");
@@ -591,12 +643,26 @@ mod tests {
     #[test]
     fn quaternions_are_reordered_and_shapes_checked() {
         assert_eq!(quaternion([1.0, 2.0, 3.0, 4.0]), json!({"x": 2.0, "y": 3.0, "z": 4.0, "w": 1.0}));
-        let mut bad = tiny(3);
-        bad["reward"] = json!([1.0, 2.0]);
-        let err = Recording::from_value(bad).unwrap_err().to_string();
-        assert!(err.contains("reward has 2 entries, time has 3"), "{err}");
-        let mut bad = tiny(2);
-        bad["geoms"][0]["body"] = json!("Head");
-        assert!(Recording::from_value(bad).unwrap_err().to_string().contains("Head"));
+        let (value, mut arrays) = tiny(3);
+        arrays.insert("reward".into(), FloatArray::F32(per(2, &[1.0], &[])));
+        let err = Recording::from_result(value, arrays).unwrap_err().to_string();
+        assert!(err.contains("reward is [2] float32, expected [3] float32"), "{err}");
+        let (value, mut arrays) = tiny(3);
+        arrays.insert("body_pos".into(), FloatArray::F32(per(3, &[0.0; 6], &[2, 3])));
+        let err = Recording::from_result(value, arrays).unwrap_err().to_string();
+        assert!(err.contains("body_pos is [3, 2, 3] float32, expected [3, 2, 3] float64"), "{err}");
+        let (value, mut arrays) = tiny(3);
+        arrays.remove("time");
+        let err = Recording::from_result(value, arrays).unwrap_err().to_string();
+        assert!(err.contains("time is missing or not a float array"), "{err}");
+    }
+
+    #[test]
+    fn float32_values_reach_the_messages_exactly() {
+        let rec = recording(1);
+        let messages = step_messages(&rec, 0, 0);
+        // 0.1f32 widened to f64 (0.10000000149011612), as Python's float() of it reads.
+        assert_eq!(messages[1].1["position"], json!([f64::from(0.1f32)]));
+        assert_eq!(messages[2].1["pitch"], json!(0.2));
     }
 }

@@ -9,6 +9,11 @@ frames and a filmstrip. Replaying `qpos` makes the pictures independent of the p
 that produced the episode, and it gives the initial state its real body poses (the env's reset
 view carries no kinematics).
 
+Per-step data leaves as C-contiguous NumPy arrays, which the CLI reads through the buffer
+protocol in one copy: float32 for what the environment computed (float32 in JAX), float64 for
+what the host computed in float64 (time, body poses, torso pitch), so that nothing is rounded on
+the way and the MCAP holds exactly the values computed here.
+
 Rendering runs in a child Python process (`python -m jax_env.evaluation.recording render …`):
 MuJoCo and PyOpenGL pick their OpenGL platform once, when they are first imported, so a process
 that already imported `mujoco` (the CLI's embedded interpreter has) cannot switch to EGL, nor
@@ -185,25 +190,30 @@ def _result(env, req: dict, stage: dict, rec: dict, control_start: int, obstacle
   pos, quat = body_poses(m, qpos, bodies)
   joint_pos = qpos[:, 7:]
 
-  def lst(a) -> list:
-    return np.asarray(a, np.float64).tolist()
+  def f32(a) -> np.ndarray:
+    return np.ascontiguousarray(a, np.float32)
 
+  def f64(a) -> np.ndarray:
+    return np.ascontiguousarray(a, np.float64)
+
+  terms = tuple(rewards_lib.TERMS)
   out = {
       "dt": float(env.ctrl_dt),
-      "time": lst(np.arange(n) * env.ctrl_dt),
+      "time": f64(np.arange(n) * env.ctrl_dt),
       "body_names": list(robot.BODY_NAMES),
-      "body_pos": lst(pos),
-      "body_quat": lst(quat),
+      "body_pos": f64(pos),
+      "body_quat": f64(quat),
       "joint_names": list(robot.JOINT_NAMES),
-      "joint_pos": lst(joint_pos),
-      "joint_vel": lst(np.asarray(rec["qvel"])[:, 6:]),
-      "joint_torque": lst(rec["torque"]),
-      "torso_pitch": lst(torso_pitch(rec["gravity"])),
-      "reward": lst(rec["reward"]),
-      "reward_terms": {t: lst(rec["terms"][t]) for t in rewards_lib.TERMS},
-      "standing": lst(rec["standing"]),
-      "succeeded": lst(np.asarray(rec["succeeded"], np.float64)),
-      "push_force": lst(rec["push"]),
+      "joint_pos": f32(joint_pos),
+      "joint_vel": f32(np.asarray(rec["qvel"])[:, 6:]),
+      "joint_torque": f32(rec["torque"]),
+      "torso_pitch": f64(torso_pitch(rec["gravity"])),
+      "reward": f32(rec["reward"]),
+      "reward_term_names": list(terms),
+      "reward_terms": f32(np.stack([np.asarray(rec["terms"][t]) for t in terms], axis=-1)),
+      "standing": f32(rec["standing"]),
+      "succeeded": f32(rec["succeeded"]),
+      "push_force": f32(rec["push"]),
       "success": success,
       "recovery_time": recovery_time if success and math.isfinite(recovery_time) else None,
       "truncated_at": truncated_at,

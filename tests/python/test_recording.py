@@ -74,24 +74,32 @@ def episode(checkpoint):
       "duration_s": DURATION_S, "video": None, "filmstrip": None})
 
 
-def test_every_per_step_list_has_one_entry_per_control_step(episode):
-  json.dumps(episode, allow_nan=False)  # JSON-like and finite, as the Rust side needs
+def test_every_per_step_array_has_one_entry_per_control_step(episode):
+  arrays = {k: v for k, v in episode.items() if isinstance(v, np.ndarray)}
+  rest = {k: v for k, v in episode.items() if k not in arrays}
+  json.dumps(rest, allow_nan=False)  # the rest is JSON-like and finite, as the Rust side needs
   dt = episode["dt"]
   steps = int(round(DURATION_S / dt))
   assert dt == pytest.approx(0.02)
   assert episode["time"] == pytest.approx([i * dt for i in range(steps)])
   assert episode["body_names"] == list(robot.BODY_NAMES)
   assert episode["joint_names"] == list(robot.JOINT_NAMES)
-  shapes = {"body_pos": (steps, 24, 3), "body_quat": (steps, 24, 4), "joint_pos": (steps, 23),
-            "joint_vel": (steps, 23), "joint_torque": (steps, 23), "torso_pitch": (steps,),
-            "reward": (steps,), "standing": (steps,), "succeeded": (steps,),
-            "push_force": (steps, 3)}
-  for key, shape in shapes.items():
-    assert np.asarray(episode[key]).shape == shape, key
-  assert list(episode["reward_terms"]) == list(rewards_lib.TERMS)
-  for term, values in episode["reward_terms"].items():
-    assert len(values) == steps, term
-  total = np.sum([episode["reward_terms"][t] for t in rewards_lib.TERMS], axis=0)
+  assert episode["reward_term_names"] == list(rewards_lib.TERMS)
+  # The CLI reads each array in one copy and insists on these shapes and dtypes: float64 for
+  # what the host computed in float64, float32 for what the environment computed.
+  f64, f32 = np.dtype(np.float64), np.dtype(np.float32)
+  expected = {"time": ((steps,), f64), "body_pos": ((steps, 24, 3), f64),
+              "body_quat": ((steps, 24, 4), f64), "torso_pitch": ((steps,), f64),
+              "joint_pos": ((steps, 23), f32), "joint_vel": ((steps, 23), f32),
+              "joint_torque": ((steps, 23), f32), "reward": ((steps,), f32),
+              "reward_terms": ((steps, len(rewards_lib.TERMS)), f32),
+              "standing": ((steps,), f32), "succeeded": ((steps,), f32),
+              "push_force": ((steps, 3), f32)}
+  assert sorted(arrays) == sorted(expected)
+  for key, (shape, dtype) in expected.items():
+    assert (arrays[key].shape, arrays[key].dtype) == (shape, dtype), key
+    assert arrays[key].flags.c_contiguous and np.all(np.isfinite(arrays[key])), key
+  total = episode["reward_terms"].sum(axis=-1)
   np.testing.assert_allclose(total, episode["reward"], rtol=1e-4, atol=1e-5)
   assert isinstance(episode["success"], bool)
   assert episode["recovery_time"] is None or episode["recovery_time"] >= 0

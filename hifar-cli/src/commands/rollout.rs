@@ -183,10 +183,10 @@ pub fn run(args: &RolloutArgs) -> Result<()> {
     };
     let status = Status::start("hifar rollout");
     status.step(&format!("recording {} (stage {})", describe(&plan, &backend, plan.push_direction.as_deref()), plan.stage_name));
-    let result = facade
-        .call("rollout", &[plan.request(&backend)])
+    let (result, arrays) = facade
+        .call_with_arrays("rollout", &[plan.request(&backend)])
         .map_err(|err| python_failure("facade.rollout failed", err, &paths::command_log()))?;
-    let rec = Recording::from_value(result).context("facade.rollout returned an unexpected result")?;
+    let rec = Recording::from_result(result, arrays).context("facade.rollout returned an unexpected result")?;
     let what = describe(&plan, &backend, Some(&rec.push_direction));
 
     let mut metadata = BTreeMap::new();
