@@ -47,37 +47,34 @@ DEFAULT_TOLERANCE = 1e-5
 ROWS_PER_KIND = 64
 BATCH_DIM = "N"
 
-_REQUEST_KEYS = ("checkpoint", "out", "tolerance", "stage")
 # The flax/brax activation of each checkpoint `network.activation`, as ONNX ops.
 _ACTIVATIONS = ("elu", "swish", "tanh", "relu")
 
 
 @dataclasses.dataclass(frozen=True)
-class ExportRequest:
+class ExportJob:
+  """A checked `facade_requests.ExportRequest`."""
   checkpoint: Path
   out: Path
   tolerance: float
   stage: dict | None
 
   @classmethod
-  def from_dict(cls, request: dict) -> "ExportRequest":
-    facade_requests.check_keys("export_onnx", request, _REQUEST_KEYS,
-                               required=("checkpoint", "out"))
-    tol = request.get("tolerance")
-    tol = DEFAULT_TOLERANCE if tol is None else float(tol)
+  def from_dict(cls, request: dict) -> "ExportJob":
+    req = facade_requests.parse("export_onnx", facade_requests.ExportRequest, request)
+    tol = DEFAULT_TOLERANCE if req.tolerance is None else float(req.tolerance)
     if not (math.isfinite(tol) and tol > 0):
       raise ValueError(f"export_onnx: tolerance must be a positive number, got {tol!r}")
-    out = Path(request["out"])
+    out = Path(req.out)
     if out.is_dir():
       raise ValueError(f"{out}: is a directory; give the path of the .onnx file to write")
     if not out.parent.is_dir():
       raise ValueError(f"{out.parent}: no such directory (the parent of the output file must "
                        "exist)")
-    stage = request.get("stage")
-    if stage is not None and not isinstance(stage, dict):
+    if req.stage is not None and not isinstance(req.stage, dict):
       raise ValueError(f"export_onnx: stage must be a stage table (dict) or None, got "
-                       f"{type(stage).__name__}")
-    return cls(checkpoint=Path(request["checkpoint"]), out=out, tolerance=tol, stage=stage)
+                       f"{type(req.stage).__name__}")
+    return cls(checkpoint=Path(req.checkpoint), out=out, tolerance=tol, stage=req.stage)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -476,7 +473,7 @@ def export_onnx(request: dict) -> dict:
   bounds), "parity_rows", "joint_target_max_abs_diff", "history_input"
   ("used", or "ignored" without an adaptation module)}.
   """
-  req = ExportRequest.from_dict(request)
+  req = ExportJob.from_dict(request)
   checkpoint_dir = req.checkpoint.resolve()
   spec = actor_spec(checkpoint_dir)
   props = metadata_props(spec, checkpoint_dir, _stage_table(spec, req.stage, checkpoint_dir))

@@ -14,9 +14,6 @@ from typing import Callable
 
 from jax_env import versions as versions_lib
 
-_TRAIN_KEYS = ("stage", "stage_name", "stage_dir", "seed", "backend", "num_envs",
-               "init_checkpoint", "resume_checkpoint", "log_file")
-
 
 def versions() -> dict:
   """Python and the versions of the packages hifar depends on (None where not installed)."""
@@ -88,24 +85,22 @@ def train_stage(request: dict, callback: Callable[[dict], str] | None) -> dict:
   "env_steps": int}.
   """
   from jax_env import facade_requests
-  facade_requests.check_keys("train_stage", request, _TRAIN_KEYS,
-                             required=("stage", "stage_dir", "seed", "backend"))
-  backend = facade_requests.check_backend("train_stage", request["backend"])
+  req = facade_requests.parse("train_stage", facade_requests.TrainRequest, request)
+  backend = facade_requests.check_backend("train_stage", req.backend)
 
   from jax_env.env import FallRecoveryEnv
   from jax_env.learner import train
   from jax_env.stage_config import StageConfig
 
-  stage = StageConfig.from_dict(request["stage"])
+  stage = StageConfig.from_dict(req.stage)
   learner_config = train.LearnerConfig.from_stage(stage)
-  if request.get("stage_name"):
-    learner_config = dataclasses.replace(learner_config, stage_name=request["stage_name"])
+  if req.stage_name:
+    learner_config = dataclasses.replace(learner_config, stage_name=req.stage_name)
   env = FallRecoveryEnv(stage, backend=backend)
   return train.train_stage(
-      env, learner_config, stage_dir=request["stage_dir"], seed=int(request["seed"]),
-      num_envs=request.get("num_envs"), init_checkpoint=request.get("init_checkpoint"),
-      resume_checkpoint=request.get("resume_checkpoint"), callback=callback,
-      log_file=request.get("log_file"), stage_config=request["stage"])
+      env, learner_config, stage_dir=req.stage_dir, seed=int(req.seed), num_envs=req.num_envs,
+      init_checkpoint=req.init_checkpoint, resume_checkpoint=req.resume_checkpoint,
+      callback=callback, log_file=req.log_file, stage_config=req.stage)
 
 
 def evaluate(request: dict, callback: Callable[[dict], str] | None = None) -> dict:
@@ -164,18 +159,21 @@ def _actor(checkpoint_dir: str):
   return nets.config, fn
 
 
-def act(checkpoint_dir: str, obs: list, history: list | None = None) -> list:
+def act(request: dict) -> list:
   """Deterministic actions [N][n_action] of the deployable actor (adaptation module + base
-  policy) for observations [N][n_obs].
+  policy) for `request["obs"]`, observation rows [N][n_obs], of `request["checkpoint"]`.
 
-  history: N × history_len × n_obs, oldest first: the observations BEFORE `obs` (the module
-  reads the window [history[1:], obs]); omitted, it is zeros, exactly what an episode starts
-  with in training.
+  `request["history"]`: N × history_len × n_obs, oldest first: the observations BEFORE `obs`
+  (the module reads the window [history[1:], obs]); omitted, it is zeros, exactly what an
+  episode starts with in training.
   """
   import numpy as np
 
-  config, fn = _actor(checkpoint_dir)
-  o = np.asarray(obs, dtype=np.float32)
+  from jax_env import facade_requests
+  req = facade_requests.parse("act", facade_requests.ActRequest, request)
+  history = req.history
+  config, fn = _actor(req.checkpoint)
+  o = np.asarray(req.obs, dtype=np.float32)
   if o.ndim != 2 or o.shape[1] != config.obs_size:
     raise ValueError(f"act: obs must be N × {config.obs_size} (the checkpoint's obs_names), "
                      f"got shape {list(o.shape)}")

@@ -280,15 +280,6 @@ impl Facade {
             run().map_err(|err| PythonError::from_pyerr(py, err))
         })
     }
-
-    /// `facade.train_stage(request, callback)`: `callback` sees every progress dict and answers
-    /// "continue", "finish" or "interrupt".
-    pub fn train_stage<F>(&self, request: &Value, callback: F) -> PyOutcome<Value>
-    where
-        F: FnMut(Value) -> String + Send + 'static,
-    {
-        self.call_with_progress("train_stage", request, callback)
-    }
 }
 
 /// A float array handed over by Python: its shape and its values in C (row-major) order.

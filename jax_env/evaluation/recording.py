@@ -23,6 +23,7 @@ fall back from EGL to OSMesa. A fresh child per attempt can.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import fractions
 import json
 import math
@@ -37,9 +38,6 @@ import numpy as np
 
 from jax_env import facade_requests
 from jax_env.files import write_atomic
-
-_REQUEST_KEYS = ("checkpoint", "stage", "scenario", "terrain", "push_force", "push_direction",
-                 "seed", "backend", "duration_s", "video", "filmstrip")
 
 # The floor as a primitive: a large flat box whose top face is the plane z = 0.
 FLOOR_HALF_SIZE = (10.0, 10.0, 0.01)
@@ -70,16 +68,16 @@ def rollout(request: dict) -> dict:
   from jax_env.learner import train
 
   req = _checked_request(request, SCENARIOS, TERRAINS, conditions)
-  policy = policy_lib.load(req["checkpoint"])
-  stage = conditions.evaluation_stage(policy_lib.stage_of(policy, req["stage"]))
-  stage = _with_duration(stage, req["duration_s"])
-  env = FallRecoveryEnv(stage, backend=req["backend"])
+  policy = policy_lib.load(req.checkpoint)
+  stage = conditions.evaluation_stage(policy_lib.stage_of(policy, req.stage))
+  stage = _with_duration(stage, req.duration_s)
+  env = FallRecoveryEnv(stage, backend=req.backend)
   policy_lib.check_features(policy, env)
 
   condition = conditions.Condition(
-      scenario=req["scenario"], terrain=req["terrain"], push_force=req["push_force"],
-      push_direction=req["push_direction"])
-  keys = jax.random.split(train.seed_key(req["seed"]), 1)
+      scenario=req.scenario, terrain=req.terrain, push_force=req.push_force,
+      push_direction=req.push_direction)
+  keys = jax.random.split(train.seed_key(req.seed), 1)
   arrays = conditions.condition_arrays(env, condition, batch=1)
 
   push_at = env.privileged_names.index("push_force/x")
@@ -122,29 +120,24 @@ def rollout(request: dict) -> dict:
 
 
 def _checked_request(request: dict, scenarios: Sequence[str], terrains: Sequence[str],
-                     conditions) -> dict:
+                     conditions) -> facade_requests.RolloutRequest:
   """The request with its defaults filled in; bad values raise one-line errors naming them."""
-  facade_requests.check_keys("rollout", request, _REQUEST_KEYS, required=("checkpoint",))
-  req = {k: request.get(k) for k in _REQUEST_KEYS}
-  req["scenario"] = req["scenario"] or "supine"
-  req["terrain"] = req["terrain"] or "flat"
-  req["backend"] = req["backend"] or "native"
-  req["seed"] = int(req["seed"] or 0)
-  facade_requests.check_choice("rollout", "scenario", req["scenario"], scenarios)
-  facade_requests.check_choice("rollout", "terrain", req["terrain"], terrains)
-  facade_requests.check_backend("rollout", req["backend"])
-  force = 0.0 if req["push_force"] is None else float(req["push_force"])
+  req = facade_requests.parse("rollout", facade_requests.RolloutRequest, request)
+  facade_requests.check_choice("rollout", "scenario", req.scenario, scenarios)
+  facade_requests.check_choice("rollout", "terrain", req.terrain, terrains)
+  facade_requests.check_backend("rollout", req.backend)
+  force = float(req.push_force)
   if not (math.isfinite(force) and force >= 0):
-    raise ValueError(f"push force {req['push_force']!r} must be a number >= 0 (newtons)")
-  req["push_force"] = force
-  if req["push_direction"] is None:
-    req["push_direction"] = conditions.planar_direction(req["scenario"])
-  facade_requests.check_choice("rollout", "push direction", req["push_direction"],
+    raise ValueError(f"push force {req.push_force!r} must be a number >= 0 (newtons)")
+  direction = req.push_direction
+  if direction is None:
+    direction = conditions.planar_direction(req.scenario)
+  facade_requests.check_choice("rollout", "push direction", direction,
                                tuple(conditions.PUSH_DIRECTIONS))
-  duration = req["duration_s"]
+  duration = req.duration_s
   if duration is not None and not (math.isfinite(float(duration)) and float(duration) > 0):
     raise ValueError(f"duration {duration!r} must be a number of seconds > 0")
-  return req
+  return dataclasses.replace(req, push_force=force, push_direction=direction, seed=int(req.seed))
 
 
 def _with_duration(stage: dict, duration_s: float | None) -> dict:
@@ -170,7 +163,8 @@ def _with_duration(stage: dict, duration_s: float | None) -> dict:
 # Host-side results.
 
 
-def _result(env, req: dict, stage: dict, rec: dict, control_start: int, obstacle_pos) -> dict:
+def _result(env, req: facade_requests.RolloutRequest, stage: dict, rec: dict,
+            control_start: int, obstacle_pos) -> dict:
   from jax_env import rewards as rewards_lib
   from jax_env import robot
 
@@ -219,20 +213,20 @@ def _result(env, req: dict, stage: dict, rec: dict, control_start: int, obstacle
       "truncated_at": truncated_at,
       "control_start_s": float(control_start * env.ctrl_dt),
       "geoms": scene_geoms(m, obstacle_pos),
-      "scenario": req["scenario"], "terrain": req["terrain"], "backend": req["backend"],
-      "seed": req["seed"], "push_direction": req["push_direction"],
-      "push_force_n": req["push_force"], "checkpoint": str(req["checkpoint"]),
+      "scenario": req.scenario, "terrain": req.terrain, "backend": req.backend,
+      "seed": req.seed, "push_direction": req.push_direction,
+      "push_force_n": req.push_force, "checkpoint": str(req.checkpoint),
       "stage": stage.get("name"),
       "video": None, "filmstrip": None,
   }
-  if req["video"] or req["filmstrip"]:
+  if req.video or req.filmstrip:
     mocap = np.zeros((m.nmocap, 3))
     for b in np.flatnonzero(m.body_mocapid >= 0):
       mocap[m.body_mocapid[b]] = m.body_pos[b]
     if obstacle_pos is not None:
       mocap[m.body(robot.OBSTACLE_BODY).mocapid[0]] = obstacle_pos
     written = render(m, qpos, mocap, env.ctrl_dt, lookat_xy=pos[..., :2].mean(axis=(0, 1)),
-                     video=req["video"], filmstrip=req["filmstrip"])
+                     video=req.video, filmstrip=req.filmstrip)
     out.update(written)
   return out
 

@@ -32,6 +32,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
+from jax_env import facade_requests
 from jax_env.files import write_atomic
 
 DPI = 150
@@ -768,8 +769,9 @@ def _stage_name(stage: Any) -> str:
 
 def report(request: dict) -> dict:
   """Writes the plots and `report.md` of `request["run"]` into `request["out_dir"]`."""
-  run = Path(request["run"])
-  out = Path(request.get("out_dir") or run / "report")
+  req = facade_requests.parse("report", facade_requests.ReportRequest, request)
+  run = Path(req.run)
+  out = Path(req.out_dir or run / "report")
   manifest = read_manifest(run)
   records, bad_lines = read_metrics(run / "metrics.jsonl")
   spans = stage_spans(manifest, records)

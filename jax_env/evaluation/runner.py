@@ -38,8 +38,6 @@ from jax_env.learner import train as train_lib
 FORMAT_VERSION = 1
 FILES = ("eval.json", "eval.csv", "eval.md")
 DEFAULT_BATCH = {"mjx": 1024, "native": 128}
-_REQUEST_KEYS = ("checkpoint", "stage", "protocol", "trials", "backend", "seed", "out_dir",
-                 "batch_size")
 CSV_FIELDS = ("experiment", "scenario", "setting", "value", "trials", "successes",
               "success_rate", "ci_low", "ci_high", "recovery_time_mean", "recovery_time_std",
               "paper_success_rate", "paper_recovery_time_mean", "paper_recovery_time_std")
@@ -62,24 +60,22 @@ _ROLLOUTS: dict = {}
 
 
 def _validate(request: dict) -> dict:
-  facade_requests.check_keys("evaluate", request, _REQUEST_KEYS,
-                             required=("checkpoint", "protocol", "backend", "out_dir"))
-  protocol = facade_requests.check_choice("evaluate", "protocol", request["protocol"],
+  req = facade_requests.parse("evaluate", facade_requests.EvaluateRequest, request)
+  protocol = facade_requests.check_choice("evaluate", "protocol", req.protocol,
                                           tuple(proto_lib.PROTOCOLS))
-  backend = facade_requests.check_backend("evaluate", request["backend"])
-  trials = request.get("trials")
-  trials = proto_lib.DEFAULT_TRIALS[protocol] if trials is None else int(trials)
+  backend = facade_requests.check_backend("evaluate", req.backend)
+  trials = proto_lib.DEFAULT_TRIALS[protocol] if req.trials is None else int(req.trials)
   if trials < 1:
     raise ValueError(f"evaluate: trials {trials} must be >= 1")
-  batch = request.get("batch_size")
+  batch = req.batch_size
   if batch is not None and int(batch) < 1:
     raise ValueError(f"evaluate: batch_size {batch} must be >= 1")
-  seed = int(request.get("seed") or 0)
+  seed = int(req.seed)
   if not 0 <= seed < 2**64:
     raise ValueError(f"evaluate: seed {seed} is not a u64")
-  return dict(checkpoint=Path(request["checkpoint"]), stage=request.get("stage"),
-              protocol=protocol, trials=trials, backend=backend, seed=seed,
-              out_dir=Path(request["out_dir"]), batch_size=None if batch is None else int(batch))
+  return dict(checkpoint=Path(req.checkpoint), stage=req.stage, protocol=protocol,
+              trials=trials, backend=backend, seed=seed, out_dir=Path(req.out_dir),
+              batch_size=None if batch is None else int(batch))
 
 
 def trial_keys(seed: int, cell_index: int, trials: int) -> np.ndarray:

@@ -5,6 +5,7 @@ mod common;
 mod curriculum;
 mod eval;
 mod export;
+mod facade;
 mod report;
 mod rollout;
 mod runs;

@@ -58,6 +58,6 @@ def test_native_and_mjx_training_reach_the_same_band(tmp_path):
   # The policies after the same updates on nearly the same data act alike.
   obs = np.random.default_rng(0).normal(size=(16, len(facade.feature_names(_stage())
                                                          ["obs_names"]))).tolist()
-  a = np.asarray(facade.act(native["checkpoint"], obs))
-  b = np.asarray(facade.act(mjx["checkpoint"], obs))
+  a = np.asarray(facade.act({"checkpoint": native["checkpoint"], "obs": obs}))
+  b = np.asarray(facade.act({"checkpoint": mjx["checkpoint"], "obs": obs}))
   assert np.max(np.abs(a - b)) < 0.05, np.max(np.abs(a - b))

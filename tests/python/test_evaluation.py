@@ -441,7 +441,8 @@ def test_an_untrained_adaptation_module_is_refused(fresh_checkpoint, tmp_path):
     message = (f"{d}: its RMA adaptation module was never trained (stage full ended before its "
                "adaptation phase); train with rma.adaptation_env_steps > 0 or evaluate a later "
                "checkpoint")
-    for call in (lambda: facade.act(str(d), [[0.0] * len(meta["obs_names"])]),
+    for call in (lambda: facade.act({"checkpoint": str(d),
+                                      "obs": [[0.0] * len(meta["obs_names"])]}),
                  lambda: policy_lib.load(d),
                  lambda: runner.evaluate({"checkpoint": str(d), "protocol": "keystate",
                                           "backend": "native", "out_dir": str(tmp_path / "o")}),

@@ -133,8 +133,8 @@ def test_rma_export_matches_act_and_documents_itself(rma_checkpoint, tmp_path):
   for seed, with_history in ((10, True), (11, False)):
     obs, hist = _rows(ckpt, 8, seed, with_history)
     action, _ = session.run(None, {"obs": obs, "history": hist})
-    expected = np.asarray(facade.act(ckpt, obs.tolist(),
-                                     hist.tolist() if with_history else None))
+    expected = np.asarray(facade.act({"checkpoint": ckpt, "obs": obs.tolist(),
+                                      "history": hist.tolist() if with_history else None}))
     np.testing.assert_allclose(action, expected, rtol=0, atol=1e-5)
   # The history matters (the adaptation module is in the graph).
   obs, hist = _rows(ckpt, 4, 12)
@@ -186,7 +186,8 @@ def test_non_rma_export_with_default_mapping(plain_checkpoint, tmp_path):
   session = _session(out)
   obs, hist = _rows(ckpt, 8, 30)
   action, target = session.run(None, {"obs": obs, "history": hist})
-  np.testing.assert_allclose(action, facade.act(ckpt, obs.tolist()), rtol=0, atol=1e-5)
+  np.testing.assert_allclose(action, facade.act({"checkpoint": ckpt, "obs": obs.tolist()}),
+                             rtol=0, atol=1e-5)
   # The history is accepted and ignored.
   action0, _ = session.run(None, {"obs": obs, "history": np.zeros_like(hist)})
   np.testing.assert_array_equal(action, action0)

@@ -321,7 +321,7 @@ def test_act_matches_policy_mean_without_rma(tmp_path):
   _, state = _trained_like_state(config, seed=4)
   d = str(_save(tmp_path / "ck", state, config))
   obs = np.random.default_rng(1).normal(size=(5, config.obs_size)).astype(np.float32)
-  actions = np.asarray(facade.act(d, obs.tolist()))
+  actions = np.asarray(facade.act({"checkpoint": d, "obs": obs.tolist()}))
   t = safetensors.numpy.load_file(os.path.join(d, "params.safetensors"))
   x = np.clip((obs - t["normalizer/obs/mean"]) / t["normalizer/obs/std"], -10, 10)
   for i in range(3):
@@ -329,7 +329,7 @@ def test_act_matches_policy_mean_without_rma(tmp_path):
     if i < 2:
       x = _elu(x)
   np.testing.assert_allclose(actions, x, rtol=1e-4, atol=1e-5)
-  assert facade.act(d, obs.tolist()) == actions.tolist(), "deterministic"
+  assert facade.act({"checkpoint": d, "obs": obs.tolist()}) == actions.tolist(), "deterministic"
 
 
 def test_act_uses_adaptation_module_and_history(tmp_path):
@@ -341,14 +341,15 @@ def test_act_uses_adaptation_module_and_history(tmp_path):
   obs = rng.normal(size=(3, config.obs_size)).astype(np.float32)
   hist = rng.normal(size=(3, config.history_len, config.obs_size)).astype(np.float32)
   expected = nets_lib.deployable_mean(nets, state.params, state.normalizer, obs, hist)
-  np.testing.assert_allclose(facade.act(d, obs.tolist(), hist.tolist()), expected, rtol=1e-5,
-                             atol=1e-6)
+  with_history = {"checkpoint": d, "obs": obs.tolist(), "history": hist.tolist()}
+  np.testing.assert_allclose(facade.act(with_history), expected, rtol=1e-5, atol=1e-6)
   zeros = nets_lib.deployable_mean(nets, state.params, state.normalizer, obs,
                                    np.zeros_like(hist))
-  np.testing.assert_allclose(facade.act(d, obs.tolist()), zeros, rtol=1e-5, atol=1e-6)
+  np.testing.assert_allclose(facade.act({"checkpoint": d, "obs": obs.tolist()}), zeros,
+                             rtol=1e-5, atol=1e-6)
   # The module really reads the history.
   assert not np.allclose(expected, zeros)
   with pytest.raises(ValueError, match=r"obs must be N × 5"):
-    facade.act(d, [[0.0] * 4])
+    facade.act({"checkpoint": d, "obs": [[0.0] * 4]})
   with pytest.raises(ValueError, match=r"history must be N × history_len × n_obs = \[3, 6, 5\]"):
-    facade.act(d, obs.tolist(), hist[:, :2].tolist())
+    facade.act({**with_history, "history": hist[:, :2].tolist()})

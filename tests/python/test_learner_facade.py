@@ -77,9 +77,10 @@ def test_train_stage_smoke_on_the_real_env(tmp_path):
 
   n_obs = len(names["obs_names"])
   obs = np.random.default_rng(0).normal(size=(2, n_obs)).tolist()
-  actions = facade.act(result["checkpoint"], obs)
+  actions = facade.act({"checkpoint": result["checkpoint"], "obs": obs})
   assert np.asarray(actions).shape == (2, len(names["action_names"]))
-  assert facade.act(result["checkpoint"], obs, [[[0.0] * n_obs] * 4] * 2) == actions
+  zeros = [[[0.0] * n_obs] * 4] * 2
+  assert facade.act({"checkpoint": result["checkpoint"], "obs": obs, "history": zeros}) == actions
 
   # Resuming the finished stage restores the real environment's full rollout state (every
   # leaf by name, shape and dtype) and returns at once.

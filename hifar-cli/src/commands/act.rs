@@ -10,7 +10,7 @@ use anyhow::{Context, Result};
 use serde_json::{json, Value};
 
 use crate::cli::ActArgs;
-use crate::commands::facade::python_failure;
+use crate::commands::facade::{python_failure, ActRequest, Request};
 use crate::commands::setup;
 use crate::{bad_input, checkpoint, paths};
 
@@ -37,10 +37,10 @@ pub fn run(args: &ActArgs) -> Result<()> {
         }
     }
     let history = match input.get("history") {
-        None | Some(Value::Null) => Value::Null,
+        None | Some(Value::Null) => None,
         Some(history) => {
             check_history(history, rows.len(), meta.network.history_len as usize, n_obs).map_err(|message| bad_input!("{file}: history: {message}"))?;
-            history.clone()
+            Some(history.clone())
         }
     };
     if let Some(key) = input.as_object().and_then(|m| m.keys().find(|k| *k != "obs" && *k != "history")) {
@@ -49,8 +49,9 @@ pub fn run(args: &ActArgs) -> Result<()> {
 
     let facade = setup::ensure_python()?;
     let checkpoint_dir = paths::absolute(args.checkpoint.clone());
+    let request = ActRequest { checkpoint: checkpoint_dir, obs: rows.clone(), history };
     let actions = facade
-        .call("act", &[json!(checkpoint_dir), Value::Array(rows.clone()), history])
+        .call(ActRequest::FUNCTION, &[request.to_json()])
         .map_err(|err| python_failure("facade.act failed", err, &paths::command_log()))?;
     let out = json!({"action_names": meta.action_names, "actions": actions});
     println!("{}", serde_json::to_string(&out)?);

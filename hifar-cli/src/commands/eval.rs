@@ -14,10 +14,10 @@ use std::sync::Arc;
 
 use anyhow::{anyhow, Context, Result};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
-use serde_json::{json, Value};
+use serde_json::Value;
 
 use crate::cli::EvalArgs;
-use crate::commands::facade::{default_backend, python_failure};
+use crate::commands::facade::{default_backend, python_failure, EvaluateRequest, Request};
 use crate::commands::{setup, target};
 use crate::error::Interrupted;
 use crate::terminal::{self, Capture};
@@ -102,16 +102,16 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         out.display()
     );
 
-    let request = json!({
-        "checkpoint": plan.checkpoint,
-        "stage": plan.stage,
-        "protocol": plan.protocol,
-        "trials": plan.trials,
-        "backend": backend,
-        "seed": plan.seed,
-        "out_dir": out,
-        "batch_size": Value::Null,
-    });
+    let request = EvaluateRequest {
+        checkpoint: plan.checkpoint.clone(),
+        stage: plan.stage.clone(),
+        protocol: plan.protocol.to_owned(),
+        trials: plan.trials,
+        backend: backend.clone(),
+        seed: plan.seed,
+        out_dir: out.clone(),
+        batch_size: None,
+    };
     crate::python::release_signals()
         .map_err(|err| python_failure("cannot reset Python's signal handlers", err, &log))?;
     let interrupt = terminal::interrupt_flag()?;
@@ -128,7 +128,7 @@ pub fn run(args: &EvalArgs) -> Result<()> {
     );
     bar.set_message("compiling the rollout");
     let (callback_bar, callback_console, flag) = (bar.clone(), console.clone(), Arc::clone(&interrupt));
-    let result = facade.call_with_progress("evaluate", &request, move |progress| {
+    let result = facade.call_with_progress(EvaluateRequest::FUNCTION, &request.to_json(), move |progress| {
         let count = |key: &str| progress.get(key).and_then(Value::as_u64).unwrap_or(0);
         let cell = progress.get("cell").and_then(Value::as_str).unwrap_or("");
         let message = format!("{}/{} cells  {cell}", count("cells_done"), count("cells_total"));

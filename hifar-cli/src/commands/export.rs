@@ -8,11 +8,11 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Result;
-use serde_json::{json, Value};
+use serde_json::Value;
 
 use crate::checkpoint::CheckpointMeta;
 use crate::cli::ExportArgs;
-use crate::commands::facade::python_failure;
+use crate::commands::facade::{python_failure, ExportRequest, Request};
 use crate::commands::{setup, target};
 use crate::ui::Status;
 use crate::{bad_input, paths};
@@ -38,13 +38,8 @@ impl ExportPlan {
         Ok(ExportPlan { checkpoint: policy.checkpoint, meta: policy.meta, stage: policy.stage, out })
     }
 
-    pub fn request(&self) -> Value {
-        json!({
-            "checkpoint": self.checkpoint,
-            "out": self.out,
-            "tolerance": TOLERANCE,
-            "stage": self.stage,
-        })
+    pub fn request(&self) -> ExportRequest {
+        ExportRequest { checkpoint: self.checkpoint.clone(), out: self.out.clone(), tolerance: TOLERANCE, stage: self.stage.clone() }
     }
 }
 
@@ -71,7 +66,7 @@ pub fn run(args: &ExportArgs) -> Result<()> {
     let facade = setup::ensure_python()?;
     status.step("building the ONNX graph and checking it against the JAX actor with onnxruntime");
     let result = facade
-        .call("export_onnx", &[plan.request()])
+        .call(ExportRequest::FUNCTION, &[plan.request().to_json()])
         .map_err(|err| python_failure("facade.export_onnx failed", err, &paths::command_log()))?;
     status.finish("export: onnxruntime agrees with the JAX actor");
     println!("{}", summary(&plan, &result));

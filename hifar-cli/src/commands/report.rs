@@ -10,10 +10,10 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
-use serde_json::{json, Value};
+use serde_json::Value;
 
 use crate::cli::ReportArgs;
-use crate::commands::facade::python_failure;
+use crate::commands::facade::{python_failure, ReportRequest, Request};
 use crate::commands::setup;
 use crate::ui::Status;
 use crate::run_dir::{Manifest, MANIFEST};
@@ -54,9 +54,9 @@ pub fn run(args: &ReportArgs) -> Result<()> {
     let facade = setup::ensure_python()?;
     let status = Status::start("hifar report");
     status.step(&format!("plotting run {} ({} stages) into {}", plan.name, plan.stages, plan.out.display()));
-    let request = json!({"run": plan.run, "out_dir": plan.out});
+    let request = ReportRequest { run: plan.run.clone(), out_dir: plan.out.clone() };
     let result = facade
-        .call("report", &[request])
+        .call(ReportRequest::FUNCTION, &[request.to_json()])
         .map_err(|err| python_failure("facade.report failed", err, &paths::command_log()))?;
     let (markdown, plots) = parse_result(&result).context("facade.report returned an unexpected result")?;
     status.finish(&format!(

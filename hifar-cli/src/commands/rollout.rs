@@ -10,11 +10,11 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
-use serde_json::{json, Value};
+use serde_json::Value;
 
 use crate::cli::RolloutArgs;
 use crate::commands::target::{self, PolicyTarget};
-use crate::commands::facade::{default_backend, python_failure};
+use crate::commands::facade::{default_backend, python_failure, Request, RolloutRequest};
 use crate::commands::setup;
 use crate::ui::Status;
 use crate::recording::{self, Recording};
@@ -143,13 +143,20 @@ impl Plan {
         })
     }
 
-    fn request(&self, backend: &str) -> Value {
-        json!({
-            "checkpoint": self.target.checkpoint, "stage": self.stage, "scenario": self.scenario,
-            "terrain": self.terrain, "push_force": self.push_force,
-            "push_direction": self.push_direction, "seed": self.seed, "backend": backend,
-            "duration_s": self.duration, "video": self.video, "filmstrip": self.filmstrip,
-        })
+    fn request(&self, backend: &str) -> RolloutRequest {
+        RolloutRequest {
+            checkpoint: self.target.checkpoint.clone(),
+            stage: self.stage.clone(),
+            scenario: self.scenario.clone(),
+            terrain: self.terrain.clone(),
+            push_force: self.push_force,
+            push_direction: self.push_direction.clone(),
+            seed: self.seed,
+            backend: backend.to_owned(),
+            duration_s: self.duration,
+            video: self.video.clone(),
+            filmstrip: self.filmstrip.clone(),
+        }
     }
 }
 
@@ -184,7 +191,7 @@ pub fn run(args: &RolloutArgs) -> Result<()> {
     let status = Status::start("hifar rollout");
     status.step(&format!("recording {} (stage {})", describe(&plan, &backend, plan.push_direction.as_deref()), plan.stage_name));
     let (result, arrays) = facade
-        .call_with_arrays("rollout", &[plan.request(&backend)])
+        .call_with_arrays(RolloutRequest::FUNCTION, &[plan.request(&backend).to_json()])
         .map_err(|err| python_failure("facade.rollout failed", err, &paths::command_log()))?;
     let rec = Recording::from_result(result, arrays).context("facade.rollout returned an unexpected result")?;
     let what = describe(&plan, &backend, Some(&rec.push_direction));

@@ -18,7 +18,7 @@ use serde_json::{json, Map, Value};
 
 use crate::checkpoint;
 use crate::cli::TrainArgs;
-use crate::commands::facade::{default_backend_and_reason, python_failure};
+use crate::commands::facade::{default_backend_and_reason, python_failure, Request, TrainRequest};
 use crate::commands::{check, setup};
 use crate::curriculum::{self, Curriculum};
 use crate::error::{BadInput, Interrupted};
@@ -419,19 +419,19 @@ fn train_stage(
     ));
 
     let monitor = Arc::new(Mutex::new(Monitor::new(plan, stage, run, interrupt.clone(), &history, console.clone())?));
-    let request = json!({
-        "stage": stage.json,
-        "stage_name": stage.name,
-        "stage_dir": stage_dir,
-        "seed": stage.seed,
-        "backend": plan.backend,
-        "num_envs": plan.num_envs,
-        "init_checkpoint": init_checkpoint,
-        "resume_checkpoint": resume_checkpoint,
-        "log_file": run.log_path(),
-    });
+    let request = TrainRequest {
+        stage: stage.json.clone(),
+        stage_name: stage.name.clone(),
+        stage_dir: stage_dir.clone(),
+        seed: stage.seed,
+        backend: plan.backend.clone(),
+        num_envs: plan.num_envs,
+        init_checkpoint: init_checkpoint.clone(),
+        resume_checkpoint: resume_checkpoint.clone(),
+        log_file: run.log_path(),
+    };
     let callback_monitor = Arc::clone(&monitor);
-    let result = facade.train_stage(&request, move |progress| {
+    let result = facade.call_with_progress(TrainRequest::FUNCTION, &request.to_json(), move |progress| {
         let mut monitor = callback_monitor.lock().unwrap_or_else(|p| p.into_inner());
         monitor.on_progress(progress).to_owned()
     });
