@@ -7,14 +7,20 @@ the vocabularies their modules own (`jax_env.names`), ranges, mixtures that sum 
 between keys. Errors name the offending value and list the valid ones.
 
 `check_stage` collects *all* problems with their key paths (for the CLI, which maps each path
-to a TOML line); `parse_stage` raises the first one as `ConfigError`.
+to a TOML line); `parse_stage` raises the first one as `ConfigError`. This module is the one
+owner of a stage's meaning (ranges, sums, relations between keys, joint symmetry); the CLI checks
+only TOML syntax, types, names and the relations between stages, and prints these messages as
+they are, so they use its words: `key = value` with numbers as the CLI prints them (`_show`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from typing import Any, Mapping, Sequence
+
+import numpy as np
 
 from jax_env.features import mirror_joint_name
 from jax_env.names import (ACTIVATIONS, DR_PARAMS, JOINT_NAMES, KEYFRAMES, REWARD_TERMS,
@@ -54,21 +60,44 @@ def _valid(names: Sequence[str]) -> str:
   return "valid: " + ", ".join(names)
 
 
+def _show(v) -> str:
+  """A number as the CLI prints one (Rust's `{}`): an integer as it is, a float in its shortest
+  round-trip digits, never with an exponent or a trailing ".0"."""
+  if isinstance(v, int) and not isinstance(v, bool):
+    return str(v)
+  v = float(v)
+  if math.isnan(v):
+    return "NaN"
+  if math.isinf(v):
+    return "inf" if v > 0 else "-inf"
+  return np.format_float_positional(v, trim="-")
+
+
+def _pair(lo, hi) -> str:
+  return f"[{_show(lo)}, {_show(hi)}]"
+
+
 def parse_stage(d: Mapping[str, Any]) -> StageConfig:
   """Parses a stage table; raises ConfigError for the first problem found."""
   parser = _Parser()
   stage = parser.stage(d)
   if parser.errors:
-    path, message = parser.errors[0]
+    path, message, _ = parser.errors[0]
     raise ConfigError(path, message)
   return stage
 
 
 def check_stage(d: Mapping[str, Any]) -> list[dict]:
-  """Every problem in a stage table as [{"path": [...], "message": str}] (empty when valid)."""
-  parser = _Parser()
+  """Every problem in a stage table as [{"path": [...], "message": str, "at": "key"|"value"}]
+  (empty when valid); `at` says which end of the `key = value` pair is at fault.
+
+  A curriculum's stage is also refused where it parses but could never succeed (`hold_s` not
+  shorter than the episode); stages derived in Python, such as a recording shorter than
+  `hold_s`, stay valid for `parse_stage`.
+  """
+  parser = _Parser(curriculum=True)
   parser.stage(d)
-  return [{"path": list(p), "message": m} for p, m in parser.errors]
+  return [{"path": list(p), "message": m, "at": at} for p, m, at in parser.errors]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -83,11 +112,17 @@ class _Parser:
   Every helper returns None for a bad value, so one pass reports all problems.
   """
 
-  def __init__(self):
-    self.errors: list[tuple[tuple, str]] = []
+  def __init__(self, curriculum: bool = False):
+    self.errors: list[tuple[tuple, str, str]] = []
+    self.curriculum = curriculum
+    # The stage's episode length once it checked out (later sections compare against it).
+    self.episode_s: float | None = None
 
-  def err(self, path, message):
-    self.errors.append((tuple(path), message))
+  def err(self, path, message, at="key"):
+    self.errors.append((tuple(path), message, at))
+
+  def bad_value(self, path, message):
+    self.err(path, message, at="value")
 
   # -- primitive helpers ----------------------------------------------------------------------
 
@@ -111,19 +146,23 @@ class _Parser:
       return None if default is _MISSING else default
     v = d[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-      self.err(p, f"expected a number, got {v!r}")
+      self.bad_value(p, f"expected a number, got {v!r}")
       return None
     if integer and not (isinstance(v, int) or float(v).is_integer()):
-      self.err(p, f"expected an integer, got {v!r}")
+      self.bad_value(p, f"expected an integer, got {v!r}")
       return None
     if not math.isfinite(v):
-      self.err(p, f"expected a finite number, got {v!r}")
+      self.bad_value(p, f"{key} = {_show(v)} must be a finite number")
       return None
-    if minimum is not None and (v <= minimum if exclusive else v < minimum):
-      self.err(p, f"{v!r} must be {'>' if exclusive else '>='} {minimum}")
-      return None
-    if maximum is not None and v > maximum:
-      self.err(p, f"{v!r} must be <= {maximum}")
+    if ((minimum is not None and (v <= minimum if exclusive else v < minimum))
+        or (maximum is not None and v > maximum)):
+      if integer and exclusive and minimum == 0 and maximum is None:
+        expected = "a positive integer"
+      else:
+        bounds = [] if minimum is None else [f"{'>' if exclusive else '>='} {_show(minimum)}"]
+        bounds += [] if maximum is None else [f"<= {_show(maximum)}"]
+        expected = " and ".join(bounds)
+      self.bad_value(p, f"{key} = {_show(v)} is out of range; expected {expected}")
       return None
     return int(v) if integer else float(v)
 
@@ -158,25 +197,29 @@ class _Parser:
     if d is None or key not in d:
       return None
     v = d[key]
-    if not isinstance(v, (list, tuple)) or not v:
-      self.err(list(path) + [key], f"expected a non-empty list of positive integers, got {v!r}")
+    if not isinstance(v, (list, tuple)):
+      self.bad_value(list(path) + [key], f"expected a list of layer sizes, got {v!r}")
       return None
-    out = []
+    ok = bool(v)
+    if not v:
+      self.bad_value(list(path) + [key], f"{key} is empty; expected at least one hidden layer size")
     for i, x in enumerate(v):
-      if isinstance(x, bool) or not isinstance(x, int) or x <= 0:
-        self.err(list(path) + [key, i], f"expected a positive integer, got {x!r}")
-        return None
-      out.append(int(x))
-    return tuple(out)
+      if isinstance(x, bool) or not isinstance(x, int):
+        self.bad_value(list(path) + [key, i], f"expected a positive integer, got {x!r}")
+        ok = False
+      elif x <= 0:
+        self.bad_value(list(path) + [key, i], f"{key}[{i}] = {x}; layer sizes must be positive")
+        ok = False
+    return tuple(int(x) for x in v) if ok else None
 
   def pair(self, v, p, *, ordered=True):
     if (not isinstance(v, (list, tuple)) or len(v) != 2
         or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)):
-      self.err(p, f"expected [min, max] (two numbers), got {v!r}")
+      self.bad_value(p, f"expected [min, max] (two numbers), got {v!r}")
       return None
     lo, hi = float(v[0]), float(v[1])
     if ordered and lo > hi:
-      self.err(p, f"min {lo!r} > max {hi!r}")
+      self.bad_value(p, f"min {_show(lo)} > max {_show(hi)}")
       return None
     return lo, hi
 
@@ -194,16 +237,23 @@ class _Parser:
         self.err(list(path) + [k], f"unknown {what} '{k}'; {_valid(names)}")
         ok = False
         continue
-      w = self.number(d, k, path, minimum=0.0)
+      w = self.number(d, k, path)
       if w is None:
+        ok = False
+        continue
+      if w < 0:
+        self.bad_value(list(path) + [k], f"{what} weight {k} = {_show(w)} must be a finite "
+                       "number >= 0")
         ok = False
         continue
       weights[k] = w
     if ok:
+      # Summed in vocabulary order, as the CLI has always summed them.
       total = sum(weights.values())
       if abs(total - 1.0) > _SUM_TOLERANCE:
-        parts = " + ".join(f"{k}={w:g}" for k, w in weights.items() if w)
-        self.err(path, f"{what} weights must sum to 1, got {total:.6g} ({parts or 'nothing'})")
+        parts = " + ".join(f"{k} = {_show(w)}" for k, w in weights.items() if w)
+        self.err(path, f"{what} weights must sum to 1, got {_show(total)} "
+                 f"({parts or 'nothing'})")
         ok = False
     return weights if ok else None
 
@@ -211,27 +261,32 @@ class _Parser:
     if d is None or key not in d:
       return None
     v = d[key]
-    if not isinstance(v, (list, tuple)) or not v:
-      self.err([key], f"expected a non-empty list of joint names, got {v!r}")
+    if not isinstance(v, (list, tuple)):
+      self.bad_value([key], f"expected a list of joint names, got {v!r}")
+      return None
+    if not v:
+      self.bad_value([key], f"{key} is empty; expected a list of joint names")
       return None
     seen, ok = set(), True
     for i, j in enumerate(v):
       if j not in JOINT_NAMES:
-        self.err([key, i], f"unknown joint {j!r}; {_valid(JOINT_NAMES)}")
+        self.bad_value([key, i], f"unknown joint {json.dumps(j)}; valid joints: "
+                       f"{', '.join(JOINT_NAMES)}")
         ok = False
       elif j in seen:
-        self.err([key, i], f"joint {j!r} listed twice")
+        self.bad_value([key, i], f"joint {json.dumps(j)} is listed twice in {key}")
         ok = False
       seen.add(j)
     if not ok:
       return None
-    # Mirror maps permute features within the list, so it must hold every mirror partner.
-    for j in JOINT_NAMES:
-      if j in seen and mirror_joint_name(j) not in seen:
-        self.err([key], f"{key} contains {j} but not its mirror {mirror_joint_name(j)}; "
-                 "joint lists must be left/right symmetric")
-        ok = False
-    return tuple(j for j in JOINT_NAMES if j in seen) if ok else None
+    # The mirror loss permutes features within a list, so it must hold every mirror partner.
+    missing = [f"{mirror_joint_name(j)} (mirror of {j})" for j in v
+               if mirror_joint_name(j) not in seen]
+    if missing:
+      self.err([key], f"{key} must be left/right symmetric for the mirror loss; missing "
+               f"{', '.join(missing)}")
+      return None
+    return tuple(j for j in JOINT_NAMES if j in seen)
 
   # -- sections -------------------------------------------------------------------------------
 
@@ -248,10 +303,10 @@ class _Parser:
     controlled = self.joints(d, "controlled_joints")
     observed = self.joints(d, "observed_joints")
     if controlled is not None and observed is not None:
-      missing = [j for j in controlled if j not in observed]
+      missing = [j for j in d["controlled_joints"] if j not in observed]
       if missing:
         self.err(["observed_joints"], "observed_joints must include every controlled joint; "
-                 f"missing: {', '.join(missing)}")
+                 f"missing {', '.join(missing)}")
     sim = self.sim(d.get("sim"))
     out = dict(
         name=name, init_from=init_from, controlled_joints=controlled, observed_joints=observed,
@@ -259,7 +314,7 @@ class _Parser:
         action=self.action(d.get("action")),
         constraints=self.constraints(d.get("constraints")),
         scenarios=self.scenarios(d.get("scenarios")),
-        scenario_params=self.scenario_params(d.get("scenario_params"), sim),
+        scenario_params=self.scenario_params(d.get("scenario_params")),
         terrain=self.terrain(d.get("terrain")),
         rewards=self.rewards(d.get("rewards")),
         reward_params=self.reward_params(d.get("reward_params")),
@@ -297,11 +352,14 @@ class _Parser:
     if timestep and ctrl_dt:
       ratio = ctrl_dt / timestep
       if ratio < 1.0 - 1e-9 or abs(ratio - round(ratio)) > 1e-6:
-        self.err(p + ["ctrl_dt"], f"ctrl_dt {ctrl_dt!r} must be an integer multiple of "
-                 f"timestep {timestep!r}")
+        self.bad_value(p + ["ctrl_dt"], f"ctrl_dt = {_show(ctrl_dt)} must be an integer multiple "
+                       f"of timestep = {_show(timestep)} (ratio {_show(ratio)})")
         ctrl_dt = None
+    # Later sections compare with the episode length whatever became of ctrl_dt.
+    self.episode_s = episode_s
     if ctrl_dt and episode_s is not None and episode_s <= ctrl_dt:
-      self.err(p + ["episode_s"], f"episode_s {episode_s!r} must be > ctrl_dt {ctrl_dt!r}")
+      self.bad_value(p + ["episode_s"], f"episode_s = {_show(episode_s)} must be > ctrl_dt = "
+                     f"{_show(ctrl_dt)}")
       episode_s = None
     return self._all(SimConfig, dict(timestep=timestep, ctrl_dt=ctrl_dt, episode_s=episode_s))
 
@@ -332,12 +390,13 @@ class _Parser:
       d = {k: v for k, v in d.items() if not (k.startswith("ksi_") and k not in SCENARIOS)}
     return self.mixture(d, ["scenarios"], SCENARIOS, "scenario")
 
-  def scenario_params(self, d, sim):
+  def scenario_params(self, d):
     p = ["scenario_params"]
     d = self._section(d, "scenario_params", ("ksi_joint_noise", "settle_s"))
     settle = self.number(d, "settle_s", p, minimum=0.0)
-    if settle is not None and sim is not None and settle >= sim.episode_s:
-      self.err(p + ["settle_s"], f"settle_s {settle!r} must be < episode_s {sim.episode_s!r}")
+    if settle is not None and self.episode_s is not None and settle >= self.episode_s:
+      self.bad_value(p + ["settle_s"], f"settle_s = {_show(settle)} must be < episode_s = "
+                     f"{_show(self.episode_s)}")
       settle = None
     return self._all(ScenarioParams, dict(
         ksi_joint_noise=self.number(d, "ksi_joint_noise", p, minimum=0.0), settle_s=settle))
@@ -487,8 +546,14 @@ class _Parser:
     p = ["success"]
     keys = ("height_tolerance", "upright_tolerance", "dof_tolerance", "hold_s")
     d = self._section(d, "success", keys)
-    return self._all(SuccessConfig,
-                     {k: self.number(d, k, p, minimum=0.0, exclusive=True) for k in keys})
+    values = {k: self.number(d, k, p, minimum=0.0, exclusive=True) for k in keys}
+    hold = values["hold_s"]
+    if (self.curriculum and hold is not None and self.episode_s is not None
+        and hold >= self.episode_s):
+      self.bad_value(p + ["hold_s"], f"hold_s = {_show(hold)} must be < episode_s = "
+                     f"{_show(self.episode_s)}: no episode could ever count as standing")
+      values["hold_s"] = None
+    return self._all(SuccessConfig, values)
 
   def domain_randomization(self, d):
     if d is None:
@@ -515,9 +580,14 @@ class _Parser:
         continue
       op = self.choice(t, "operation", q, DR_OPERATIONS)
       dist = self.choice(t, "distribution", q, DR_DISTRIBUTIONS)
-      rng = self.pair(t["range"], q + ["range"], ordered=(dist != "gaussian"))
-      if dist == "gaussian" and rng is not None and rng[1] < 0:
-        self.err(q + ["range"], f"gaussian range is [mean, std]; std {rng[1]!r} must be >= 0")
+      rng = self.pair(t["range"], q + ["range"], ordered=False)
+      if rng is not None and dist == "uniform" and rng[0] > rng[1]:
+        self.bad_value(q + ["range"], f"{k}.range = {_pair(*rng)}: min {_show(rng[0])} > max "
+                       f"{_show(rng[1])} (uniform ranges are [low, high])")
+        rng = None
+      elif rng is not None and dist == "gaussian" and rng[1] < 0:
+        self.bad_value(q + ["range"], f"{k}.range = {_pair(*rng)}: gaussian ranges are [mean, "
+                       f"std] and std {_show(rng[1])} must be >= 0")
         rng = None
       if op is None or dist is None or rng is None:
         ok = False
@@ -537,9 +607,14 @@ class _Parser:
                                   "torque_max"))
     interval = None
     if d is not None and "interval_s" in d:
-      interval = self.pair(d["interval_s"], p + ["interval_s"])
+      interval = self.pair(d["interval_s"], p + ["interval_s"], ordered=False)
       if interval is not None and interval[0] <= 0:
-        self.err(p + ["interval_s"], f"push interval min {interval[0]!r} must be > 0")
+        self.bad_value(p + ["interval_s"], f"interval_s = {_pair(*interval)}: both must be "
+                       "finite and the min > 0")
+        interval = None
+      elif interval is not None and interval[0] > interval[1]:
+        self.bad_value(p + ["interval_s"], f"interval_s = {_pair(*interval)}: min "
+                       f"{_show(interval[0])} > max {_show(interval[1])}")
         interval = None
     return self._all(PushConfig, dict(
         enabled=self.boolean(d, "enabled", p), interval_s=interval,
@@ -557,6 +632,12 @@ class _Parser:
         "lr_schedule", "normalize_observations", "policy_hidden", "value_hidden", "activation"),
         ("max_action_std",))
     v = {k: self.number(d, k, p, minimum=0, exclusive=True, integer=True) for k in ints}
+    if v["num_envs"] is not None and v["num_minibatches"] is not None:
+      if v["num_envs"] % v["num_minibatches"]:
+        self.bad_value(p + ["num_envs"], f"num_envs = {v['num_envs']} is not divisible by "
+                       f"num_minibatches = {v['num_minibatches']} (each minibatch takes whole "
+                       "environments)")
+        v["num_envs"] = None
     v.update({k: self.number(d, k, p, minimum=0.0, exclusive=True) for k in pos})
     v.update({k: self.number(d, k, p, minimum=0.0) for k in nonneg})
     v.update({k: self.number(d, k, p, minimum=0.0, maximum=1.0) for k in unit})

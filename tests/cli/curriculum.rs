@@ -1,6 +1,8 @@
 //! Curriculum errors, checkpoint expansion, and the refusal of checkpoints whose RMA adaptation
-//! module never trained, through the real binary. None needs Python: a curriculum and such a
-//! checkpoint are rejected before the interpreter starts, and expansion is pure Rust.
+//! module never trained, through the real binary. A curriculum's syntax, types, names and
+//! relations between stages are checked before the interpreter starts, what a stage means by
+//! Python (`facade.check_stage`); such a checkpoint is refused before Python starts, and
+//! expansion is pure Rust.
 
 use std::path::{Path, PathBuf};
 
@@ -8,7 +10,7 @@ use hifar_cli::checkpoint::{self, Checkpoint, CheckpointMeta, Tensor};
 use hifar_cli::curriculum;
 use serde_json::json;
 
-use crate::common::{data, hifar, stderr, stdout, tempdir};
+use crate::common::{data, hifar, require_venv, stderr, stdout, tempdir};
 
 /// The fixtures of tests/data/bad, each with its expected `LINE:COL` and message fragment
 /// (second line: `# expect: LINE:COL: fragment`).
@@ -33,6 +35,7 @@ fn bad_fixtures() -> Vec<(PathBuf, String, String)> {
 
 #[test]
 fn every_class_of_curriculum_error_exits_2_with_its_line() {
+    require_venv();
     let dir = tempdir();
     let fixtures = bad_fixtures();
     assert!(fixtures.len() >= 20);
@@ -51,6 +54,68 @@ fn every_class_of_curriculum_error_exits_2_with_its_line() {
         }
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// What a stage means is Python's to check; its messages reach the terminal at the line of the
+/// key or value at fault, in file order, with exit code 2.
+#[test]
+fn stage_semantics_are_checked_by_python_at_their_lines() {
+    require_venv();
+    let dir = tempdir();
+    let tiny = std::fs::read_to_string(data("tiny.toml")).unwrap();
+    let line_col = |text: &str, needle: &str, offset: usize| -> String {
+        let at = text.find(needle).unwrap_or_else(|| panic!("{needle}")) + offset;
+        let line = text[..at].matches('\n').count() + 1;
+        let col = at - text[..at].rfind('\n').map_or(0, |i| i + 1) + 1;
+        format!("{line}:{col}")
+    };
+    let cases: &[(&str, &str, &str)] = &[
+        ("discount = 0.97", "discount = 1.5", "discount = 1.5 is out of range; expected >= 0 and <= 1"),
+        ("episode_s = 1.0", "episode_s = 0.01", "episode_s = 0.01 must be > ctrl_dt = 0.02"),
+        ("policy_hidden = [16, 16]", "policy_hidden = [16, 0]", "policy_hidden[1] = 0; layer sizes must be positive"),
+        ("slope_max_deg = 0.0", "slope_max_deg = 45.0", "slope_max_deg = 45 is out of range; expected >= 0 and <= 30"),
+        ("settle_s = 0.2", "settle_s = 2.0", "settle_s = 2 must be < episode_s = 1"),
+        ("hold_s = 0.2", "hold_s = 1.0", "hold_s = 1 must be < episode_s = 1: no episode could ever count as standing"),
+        ("interval_s = [2.0, 4.0]", "interval_s = [4.0, 2.0]", "interval_s = [4, 2]: min 4 > max 2"),
+        ("min_stand_rate = 0.8", "min_stand_rate = 1.2", "min_stand_rate = 1.2 is out of range; expected >= 0 and <= 1"),
+        ("\"Left_Hip_Pitch\", \"Left_Knee_Pitch\"", "\"Left_Hip_Pitch\", \"Left_Hip_Pitch\"", "joint \"Left_Hip_Pitch\" is listed twice in controlled_joints"),
+        ("range = [0.0, 0.05]", "range = [0.0, -0.05]", "dof_position.range = [0, -0.05]: gaussian ranges are [mean, std] and std -0.05 must be >= 0"),
+        ("\"Right_Shoulder_Pitch\", \"Right_Elbow_Yaw\",\n", "\"Right_Shoulder_Pitch\",\n", "controlled_joints must be left/right symmetric for the mirror loss; missing Right_Elbow_Yaw (mirror of Left_Elbow_Yaw)"),
+    ];
+    let file = dir.path().join("c.toml");
+    for (old, new, message) in cases {
+        assert!(tiny.contains(old), "{old}");
+        // Both stages' layers change alike (a stage that starts from the other keeps them).
+        let text = if old.starts_with("policy_hidden") { tiny.replace(old, new) } else { tiny.replacen(old, new, 1) };
+        std::fs::write(&file, &text).unwrap();
+        let out = hifar(dir.path()).arg("check").arg(&file).output().unwrap();
+        let err = stderr(&out);
+        assert_eq!(out.status.code(), Some(2), "{new}: {err}");
+        let first = err.lines().next().unwrap_or_default();
+        assert!(first.contains(message), "{new}: expected …{message}…\n  got {first}");
+        // A value at fault is pointed at (a bad list element: that element); a list that lacks
+        // something, at its key.
+        let expected = if message.contains("symmetric") {
+            line_col(&text, "controlled_joints", 0)
+        } else if message.contains("listed twice") || message.contains("layer sizes") {
+            line_col(&text, new, new.find(", ").unwrap() + 2)
+        } else {
+            line_col(&text, new, new.find('=').unwrap() + 2)
+        };
+        assert!(first.contains(&format!("{}:{expected}: ", file.display())), "{new}: expected at {expected}: {first}");
+    }
+
+    // Every problem, in file order, Python's and the values'.
+    let text = tiny.replacen("learning_rate = 3e-4", "learning_rate = -1.0", 1).replacen("num_envs = 8", "num_envs = 0", 2);
+    std::fs::write(&file, &text).unwrap();
+    let out = hifar(dir.path()).arg("check").arg(&file).output().unwrap();
+    let err = stderr(&out);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    let lines: Vec<&str> = err.lines().filter(|l| l.contains(&format!("{}:", file.display()))).collect();
+    assert_eq!(lines.len(), 3, "{err}");
+    assert!(lines[0].contains("num_envs = 0 is out of range; expected a positive integer"), "{err}");
+    assert!(lines[1].contains("learning_rate = -1 is out of range; expected > 0"), "{err}");
+    assert!(lines[2].contains("num_envs = 0"), "{err}");
 }
 
 #[test]

@@ -187,7 +187,8 @@ def test_max_action_std_is_validated():
   d = default_stage_dict("planar")
   d["ppo"]["max_action_std"] = 0.5  # below initial_action_std = 1.0
   assert config.check_stage(d) == [{"path": ["ppo", "max_action_std"], "message":
-                                    "max_action_std 0.5 is below initial_action_std 1.0"}]
+                                    "max_action_std 0.5 is below initial_action_std 1.0",
+                                    "at": "key"}]
 
 
 def test_penalty_schedule_by_env_steps_and_by_stand_rate():

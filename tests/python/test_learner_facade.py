@@ -17,6 +17,7 @@ def _tiny_stage():
   s = copy.deepcopy(defaults.default_stage_dict("planar"))
   s["sim"]["episode_s"] = 0.4
   s["scenario_params"]["settle_s"] = 0.04
+  s["success"]["hold_s"] = 0.2  # shorter than the episode, as `check_stage` asks
   s["ppo"].update(num_envs=8, unroll_length=4, num_minibatches=2, update_epochs=1,
                   policy_hidden=[16, 16], value_hidden=[16, 16], checkpoint_every=1)
   s["rma"].update(latent_dim=4, encoder_hidden=[16], history_len=4, adaptation_env_steps=32)

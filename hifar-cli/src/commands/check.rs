@@ -1,11 +1,11 @@
 //! `hifar check`: validate a curriculum without training.
 //!
-//! The Rust side (`curriculum::load`) checks syntax, keys, types, ranges and names (against the
-//! vocabularies jax_env exports, `crate::names`); the Python side (`facade.check_stage`) checks
-//! the stage's meaning, including the ranges of the optional tables Rust types only for their
-//! keys (`reward_shaping`, `termination`, `monitor`, `assist`). Python answers with key paths
-//! inside a stage; they are mapped back to `FILE:LINE:COL` here, so both kinds of error read
-//! the same.
+//! The Rust side (`curriculum::load`) checks syntax, keys, types and names (against the
+//! vocabularies jax_env exports, `crate::names`) and the relations between stages; the Python
+//! side (`facade.check_stage`, `jax_env/config.py`) alone checks what each stage means: ranges,
+//! mixtures, relations between keys, symmetric joint lists. Python answers with key paths
+//! inside a stage and whether the key or the value is at fault; they are mapped back to
+//! `FILE:LINE:COL` here and sorted into file order, so both kinds of error read the same.
 
 use std::path::Path;
 
@@ -16,7 +16,7 @@ use crate::cli::CheckArgs;
 use crate::commands::facade::python_failure;
 use crate::commands::setup;
 use crate::ui::group_digits;
-use crate::curriculum::{self, Curriculum};
+use crate::curriculum::{self, Curriculum, Location, Target};
 use crate::python::Facade;
 use crate::{bad_input, paths};
 
@@ -64,7 +64,7 @@ pub fn check_with_python(facade: &Facade, curriculum: &Curriculum, stages: Optio
     let all: Vec<usize> = (0..curriculum.stages().len()).collect();
     let stages = stages.unwrap_or(&all);
     let log = paths::command_log();
-    let mut problems = Vec::new();
+    let mut problems: Vec<(Location, String)> = Vec::new();
     for &index in stages {
         let stage = &curriculum.stages()[index];
         let issues = facade
@@ -79,11 +79,14 @@ pub fn check_with_python(facade: &Facade, curriculum: &Curriculum, stages: Optio
                 Some(Value::Array(path)) => path.clone(),
                 _ => Vec::new(),
             };
-            problems.push(format!("{}: {message}", curriculum.locate(index, &path)));
+            let target = if issue.get("at").and_then(Value::as_str) == Some("value") { Target::Value } else { Target::Key };
+            problems.push((curriculum.locate_at(index, &path, target), message.to_owned()));
         }
     }
     if !problems.is_empty() {
-        return Err(bad_input!("{}", problems.join("\n")));
+        problems.sort_by_key(|(at, _)| (at.line, at.col));
+        let lines: Vec<String> = problems.iter().map(|(at, message)| format!("{at}: {message}")).collect();
+        return Err(bad_input!("{}", lines.join("\n")));
     }
     Ok(())
 }

@@ -7,11 +7,13 @@
 //! 2. `schema_version` (so a file for another schema fails on that, not on its keys);
 //! 3. the typed schema ([`schema`]): unknown keys, missing keys, wrong types, unknown names of
 //!    closed vocabularies (scenarios, reward terms, DR parameters, enum values);
-//! 4. [`validate`]: ranges, mixtures that must sum to 1, joint names and symmetry, relations
-//!    between keys, and references between stages.
+//! 4. [`validate`]: joint names, numbers JSON cannot carry, and the relations between stages
+//!    (references, expansion compatibility).
 //!
-//! Positions come from a span tree of the document ([`span`]), which also maps the key paths
-//! returned by Python's `facade.check_stage` back to lines ([`Curriculum::locate`]).
+//! What a stage means — ranges, mixtures that must sum to 1, relations between its keys, joint
+//! symmetry — is Python's to check (`facade.check_stage`, run by `hifar check` and `hifar train`
+//! after [`load`]). Positions come from a span tree of the document ([`span`]), which also maps
+//! the key paths Python returns back to lines ([`Curriculum::locate`]).
 
 pub mod features;
 pub mod schema;
@@ -129,8 +131,9 @@ pub fn parse(path: &Path, text: String) -> Result<Curriculum, CurriculumError> {
         fail(vec![(span.clone(), explain(&spans, &span, err.message()))])
     })?;
 
-    // 4. Values and relations.
-    let (findings, init) = validate::validate(&file);
+    // 4. Names, numbers JSON can carry, and the relations between stages.
+    let document: toml::Table = text.parse().expect("the text parsed a moment ago");
+    let (findings, init) = validate::validate(&file, &document);
     if !findings.is_empty() {
         let mut problems: Vec<(Range<usize>, String)> =
             findings.into_iter().map(|f| (spans.find(&f.path, f.target).0, f.message)).collect();
@@ -327,9 +330,14 @@ impl Curriculum {
     /// `check_stage` returns it (`["scenarios", "ksi_prone_7"]`, `["controlled_joints", 3]`).
     /// A path that is not in the file (a missing key) points at the table that should hold it.
     pub fn locate(&self, stage: usize, path: &[Value]) -> Location {
+        self.locate_at(stage, path, Target::Key)
+    }
+
+    /// [`Curriculum::locate`], pointing at the key or at its value.
+    pub fn locate_at(&self, stage: usize, path: &[Value], target: Target) -> Location {
         let mut full = vec![PathSegment::from("stage"), PathSegment::Index(stage)];
         full.extend(path.iter().map_while(PathSegment::from_json));
-        self.locate_path(&full, Target::Key)
+        self.locate_path(&full, target)
     }
 
     /// The position of an absolute key path (from the top of the file).

@@ -116,7 +116,10 @@ fn python_key_paths_map_to_lines() {
 }
 
 /// Every fixture in tests/data/bad names its expected first error in its second line:
-/// `# expect: LINE:COL: fragment of the message`.
+/// `# expect: LINE:COL: fragment of the message`. Those whose error is a stage's meaning pass
+/// `load` and are rejected by Python (`hifar check`, tests/cli/curriculum.rs runs them all);
+/// every one `load` rejects must be rejected at its line, and the ones it owns (syntax, types,
+/// names, references between stages) are most of them.
 #[test]
 fn bad_fixtures_report_the_offending_line() {
     let dir = repo().join("tests/data/bad");
@@ -125,11 +128,13 @@ fn bad_fixtures_report_the_offending_line() {
     files.sort();
     assert!(files.len() >= 20, "fixtures missing in {}", dir.display());
     let mut failures = Vec::new();
+    let mut rejected = 0;
     for file in &files {
         let text = std::fs::read_to_string(file).unwrap();
         let expect = text.lines().nth(1).and_then(|l| l.strip_prefix("# expect: ")).expect("an expect line");
         let (position, fragment) = expect.split_once(": ").unwrap();
-        let Err(err) = load(file) else { panic!("{} should be rejected", file.display()) };
+        let Err(err) = load(file) else { continue };
+        rejected += 1;
         let first = err.to_string().lines().next().unwrap().to_owned();
         let prefix = format!("{}:{position}: ", file.display());
         if !first.starts_with(&prefix) || !first.contains(fragment) {
@@ -137,19 +142,27 @@ fn bad_fixtures_report_the_offending_line() {
         }
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
+    assert!(rejected >= 17, "only {rejected} fixtures rejected before Python");
 }
 
 #[test]
 fn all_problems_are_reported_in_file_order() {
     let text = tiny_text()
-        .replacen("learning_rate = 3e-4", "learning_rate = -1.0", 1)
-        .replacen("num_envs = 8", "num_envs = 0", 2);
+        .replacen("learning_rate = 3e-4", "learning_rate = inf", 1)
+        .replacen("init_from = \"planar\"", "init_from = \"walking\"", 1)
+        .replacen("num_envs = 8", "num_envs = -1", 1);
+    let err = parse_text(&text).unwrap_err();
+    assert_eq!(err.problems.len(), 1, "types first: {err}");
+    let text = tiny_text()
+        .replacen("learning_rate = 3e-4", "learning_rate = inf", 2)
+        .replacen("init_from = \"planar\"", "init_from = \"walking\"", 1);
     let err = parse_text(&text).unwrap_err();
     let lines: Vec<(usize, usize)> = err.problems.iter().map(|p| p.line.unwrap()).collect();
     assert_eq!(err.problems.len(), 3, "{err}");
     assert!(lines.windows(2).all(|w| w[0] <= w[1]), "{lines:?}");
-    assert!(err.problems[0].message.contains("num_envs = 0"));
-    assert!(err.problems[1].message.contains("learning_rate = -1"));
+    assert!(err.problems[0].message.contains("learning_rate = inf must be a finite number"));
+    assert!(err.problems[1].message.contains("init_from = \"walking\""));
+    assert!(err.problems[2].message.contains("learning_rate = inf"));
 }
 
 #[test]
@@ -158,18 +171,13 @@ fn more_rejections() {
     let cases: &[(&str, &str, &str)] = &[
         ("init_from = \"none\"", "init_from = \"previous\"", "there is no previous stage"),
         ("init_from = \"planar\"", "init_from = \"full\"", "cannot start from itself"),
-        ("discount = 0.97", "discount = 1.5", "discount = 1.5 is out of range; expected >= 0 and <= 1"),
-        ("episode_s = 1.0", "episode_s = 0.01", "episode_s = 0.01 must be > ctrl_dt = 0.02"),
-        ("policy_hidden = [16, 16]", "policy_hidden = [16, 0]", "policy_hidden[1] = 0"),
-        ("slope_max_deg = 0.0", "slope_max_deg = 45.0", "slope_max_deg = 45 is out of range"),
-        ("settle_s = 0.2", "settle_s = 2.0", "settle_s = 2 must be < episode_s = 1"),
-        ("interval_s = [2.0, 4.0]", "interval_s = [4.0, 2.0]", "min 4 > max 2"),
-        ("min_stand_rate = 0.8", "min_stand_rate = 1.2", "min_stand_rate = 1.2 is out of range"),
         ("learning_rate = 3e-4", "learning_rate = nan", "learning_rate = NaN must be a finite number"),
+        ("range = [0.0, 0.05]", "range = [0.0, inf]", "dof_position.range = [0, inf] must hold finite numbers"),
+        ("interval_s = [2.0, 4.0]", "interval_s = [-inf, 4.0]", "interval_s = [-inf, 4]: both must be finite"),
+        ("survival = 0.1", "survival = nan", "reward weight survival = NaN must be a finite number"),
+        ("supine = 0.2", "supine = inf", "scenario weight supine = inf must be a finite number >= 0"),
         ("num_envs = 8", "num_envs = -8", "invalid value: integer `-8`, expected a non-negative integer"),
         ("num_envs = 8", "num_envs = 8.0", "invalid type: floating point `8.0`, expected a non-negative integer"),
-        ("\"Left_Hip_Pitch\", \"Left_Knee_Pitch\"", "\"Left_Hip_Pitch\", \"Left_Hip_Pitch\"", "listed twice"),
-        ("range = [0.0, 0.05]", "range = [0.0, -0.05]", "std -0.05 must be >= 0"),
         ("range = [0.0, 0.05]", "range = [0.0, 0.05, 1.0]", "invalid length 3"),
         ("name = \"tiny\"", "name = \"my run\"", "must match [A-Za-z0-9_-]+"),
         ("backend = \"native\"", "backend = \"gpu\"", "unknown value `gpu` for backend; expected one of `auto`, `mjx`, `native`"),
@@ -180,9 +188,6 @@ fn more_rejections() {
         assert!(message.contains(fragment), "{new}: {message}");
         assert!(message.starts_with("c.toml:"), "{message}");
     }
-    // Asymmetric joint lists break the mirror loss.
-    let text = tiny.replacen("\"Right_Shoulder_Pitch\", \"Right_Elbow_Yaw\",\n", "\"Right_Shoulder_Pitch\",\n", 1);
-    assert!(first_error(&text).contains("missing Right_Elbow_Yaw (mirror of Left_Elbow_Yaw)"));
     // No stages at all.
     let head = &tiny[..tiny.find("[[stage]]").unwrap()];
     assert!(first_error(head).contains("missing required key `stage` in the top level"), "{}", first_error(head));
