@@ -18,6 +18,13 @@ angles, dropped from up to 0.3 m) — and two upright starts from the paper auth
 `stand` (the `stand` keyframe with the key-state joint noise; 3 of 10 of its stage-1 episodes
 start standing, so that the policy learns to hold the goal it is pushed towards) and `squat`
 (its deep squat on the feet: hip −1.46, knee 1.64, ankle −0.41, Trunk pitched 0.24 forward).
+
+`kneel_to_crouch` (ours) is a reverse-curriculum bridge for the prone get-up: a posture drawn
+uniformly on the straight line (joints and Trunk pitch) from `ksi_prone_3` — on the knees and
+toes, hands down — to a crouch on the balls of the feet with the knees off the floor. A zero
+action (PD targets at the stand pose) stands the T1 up from the crouch end in plain MuJoCo but
+not from the kneeling end; starts spread along the line let a policy learn the rise from the
+crouch first and then from ever lower on the knees.
 """
 
 from __future__ import annotations
@@ -41,7 +48,8 @@ KSI_SCENARIOS: tuple[str, ...] = ("ksi_prone_1", "ksi_prone_2", "ksi_prone_3", "
 # The start-state vocabulary of curricula (`[stage.scenarios]` keys), in this order everywhere
 # (an episode's scenario is an index into it).
 SCENARIOS: tuple[str, ...] = KSI_SCENARIOS + ("supine", "prone", "lateral", "sitting",
-                                              "crossed_legs", "random_drop", "stand", "squat")
+                                              "crossed_legs", "random_drop", "stand", "squat",
+                                              "kneel_to_crouch")
 
 # Scenarios whose initial pose is not a resting pose: their episodes start with settling.
 SETTLING_SCENARIOS = frozenset({"lateral", "sitting", "crossed_legs", "random_drop"})
@@ -54,6 +62,11 @@ KEYFRAME_SCENARIOS = KSI_SCENARIOS + ("stand",)
 # Trunk's forward pitch; the feet end up flat (0.24 − 1.46 + 1.64 − 0.41 ≈ 0).
 SQUAT = {"Hip_Pitch": -1.46, "Knee_Pitch": 1.64, "Ankle_Pitch": -0.41}
 SQUAT_PITCH = 0.24
+# The crouch end of `kneel_to_crouch`: on the balls of the feet (ankle −0.2, heels up), knees
+# bent fully, arms hanging forward, Trunk pitched 0.25 forward (its other joints: `stand`).
+TOE_CROUCH = {"Hip_Pitch": -1.7, "Knee_Pitch": 2.3, "Ankle_Pitch": -0.2, "Shoulder_Pitch": 0.0,
+              "Elbow_Yaw": -0.3}
+TOE_CROUCH_PITCH = 0.25
 # With an obstacle, the legs start spread by this hip roll so the ball fits between them.
 OBSTACLE_LEG_SPREAD = 0.15
 
@@ -187,6 +200,23 @@ class ScenarioSampler:
         q = q + self.noise * z.normal
         return _Pose(self._clip(q), axis_angle_quat(_Y, SQUAT_PITCH), rest)
       return squat
+
+    if family == "kneel_to_crouch":
+      kneel = self.key_qpos[KEYFRAME_SCENARIOS.index("ksi_prone_3")]
+      kneel_pitch = 2.0 * math.atan2(float(kneel[5]), float(kneel[3]))  # a pure pitch (y) quat
+      crouch = np.array(self.stand)
+      for side, sign in (("Left", 1.0), ("Right", -1.0)):
+        for joint, value in TOE_CROUCH.items():
+          # Elbow yaw mirrors with a sign change; the pitch joints do not.
+          crouch[self.j[f"{side}_{joint}"]] = sign * value if joint == "Elbow_Yaw" else value
+      kneel_q, crouch = jnp.asarray(kneel[7:]), jnp.asarray(crouch)
+
+      def kneel_to_crouch(z, scenario):
+        u = z.u[0]
+        q = between(u, kneel_q, crouch) + self.noise * z.normal
+        pitch = between(u, kneel_pitch, TOE_CROUCH_PITCH)
+        return _Pose(self._clip(q), axis_angle_quat(_Y, pitch), rest)
+      return kneel_to_crouch
 
     if family == "lateral":
       def lateral(z, scenario):

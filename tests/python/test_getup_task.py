@@ -23,7 +23,7 @@ from jax_env.learner import monitor as monitor_lib
 from jax_env.learner import networks as nets_lib
 from jax_env.learner import ppo as ppo_lib
 from jax_env.learner import train as train_lib
-from jax_env.scenarios import SQUAT, SQUAT_PITCH
+from jax_env.scenarios import REST_CLEARANCE, SQUAT, SQUAT_PITCH, TOE_CROUCH, TOE_CROUCH_PITCH
 
 B = 4
 
@@ -66,6 +66,69 @@ def test_stand_and_squat_start_on_their_feet_without_settling(upright_env):
   # Trunk pitched forward by SQUAT_PITCH: gravity in the Trunk frame leans to +x.
   assert np.all(np.asarray(state.obs[2:, 0]) == pytest.approx(math.sin(SQUAT_PITCH), abs=0.05))
   assert np.all(np.asarray(state.control_active) == 1.0)  # no settling: the policy acts at once
+
+
+def _trunk_pitch(qpos):
+  """Pitch of pure-pitch base quaternions (w, x, y, z) [B, 4] up to heading (the sampler adds a
+  random yaw about world z; the pitch is the tilt of the Trunk's z axis)."""
+  w, x, y, z = (qpos[:, 3 + i] for i in range(4))
+  zz = 1 - 2 * (x * x + y * y)  # world-z component of the Trunk's z axis
+  return np.arccos(np.clip(zz, -1.0, 1.0))
+
+
+def test_kneel_to_crouch_starts_lie_between_the_kneel_and_the_crouch():
+  env = FallRecoveryEnv(_stage(scenarios={"kneel_to_crouch": 1.0}), backend="native")
+  n = 32
+  state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(3), n))
+  assert np.all(np.asarray(state.scenario) == SCENARIOS.index("kneel_to_crouch"))
+  qpos = np.asarray(env.backend.view(state.physics).qpos)
+  kneel, _ = robot.keyframe(env.mj_model, "ksi_prone_3")
+  j = {name: 7 + i for i, name in enumerate(robot.JOINT_NAMES)}
+  slack = 5 * env.stage.scenario_params.ksi_joint_noise
+  for joint, value in TOE_CROUCH.items():
+    ends = sorted([kneel[j[f"Left_{joint}"]], value])
+    assert np.all(qpos[:, j[f"Left_{joint}"]] >= ends[0] - slack), joint
+    assert np.all(qpos[:, j[f"Left_{joint}"]] <= ends[1] + slack), joint
+  pitch = _trunk_pitch(qpos)
+  kneel_pitch = _trunk_pitch(kneel[None])[0]
+  assert np.all((pitch > TOE_CROUCH_PITCH - 0.05) & (pitch < kneel_pitch + 0.05))
+  # Spread along the line, not bunched at one end.
+  assert pitch.max() - pitch.min() > 0.5 * (kneel_pitch - TOE_CROUCH_PITCH)
+  assert np.all(np.asarray(state.control_active) == 1.0)
+
+
+def test_zero_action_stands_up_from_the_crouch_end_but_not_from_the_kneel():
+  """The bridge's premise, in plain C MuJoCo: PD targets at the stand pose (the "default"
+  mapping's zero action) raise the T1 from the crouch on its toes, not from `ksi_prone_3`."""
+  import mujoco  # pylint: disable=import-outside-toplevel
+  from jax_env import kinematics, paths  # pylint: disable=import-outside-toplevel
+  model = mujoco.MjModel.from_xml_path(str(paths.SCENE_XML))
+  lowest_point = kinematics.Kinematics(model).lowest_point
+  stand, _ = robot.keyframe(model, "stand")
+  kneel, _ = robot.keyframe(model, "ksi_prone_3")
+  crouch = stand.copy()
+  for side, sign in (("Left", 1.0), ("Right", -1.0)):
+    for joint, value in TOE_CROUCH.items():
+      crouch[7 + robot.JOINT_NAMES.index(f"{side}_{joint}")] = (
+          sign * value if joint == "Elbow_Yaw" else value)
+  crouch[3:7] = [math.cos(TOE_CROUCH_PITCH / 2), 0.0, math.sin(TOE_CROUCH_PITCH / 2), 0.0]
+
+  def stood(qpos):
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos
+    data.qpos[2] = 0.0
+    data.qpos[2] = REST_CLEARANCE - float(lowest_point(jnp.asarray(data.qpos, jnp.float32)))
+    trunk = model.body("Trunk").id
+    held = 0.0
+    for _ in range(int(3.0 / model.opt.timestep)):
+      data.ctrl[:] = stand[7:]
+      mujoco.mj_step(model, data)
+      upright = data.xmat[trunk][8] > math.cos(0.2) and abs(data.xpos[trunk][2] - 0.67) < 0.05
+      held = held + model.opt.timestep if upright else 0.0
+    return held >= 1.0
+
+  assert stood(crouch)
+  assert not stood(kneel)
 
 
 # -- terminations and clocks --------------------------------------------------------------------
