@@ -1,6 +1,6 @@
 //! Bad usage and bad input files: exit 2 with a message that names the problem.
 
-use crate::common::{hifar, read_json, stderr, tempdir};
+use crate::common::{hifar, hifar_std, read_json, repo_root, require_venv, stderr, tempdir};
 
 #[test]
 fn no_command_is_a_usage_error() {
@@ -85,4 +85,24 @@ fn setup_is_a_no_op_when_the_venv_is_current() {
     assert_eq!(out.status.code(), Some(0), "{}", stderr(&out));
     assert!(stderr(&out).contains("up to date"), "{}", stderr(&out));
     assert_eq!(read_json(&venv.join("hifar-setup.json")), before);
+}
+
+#[test]
+fn a_closed_stdout_ends_the_command_quietly() {
+    // `hifar check FILE | head -0`: the reader is gone before hifar prints (Python starts first).
+    require_venv();
+    let dir = tempdir();
+    let quickstart = repo_root().join("curricula").join("quickstart.toml");
+    let mut child = hifar_std(dir.path())
+        .args(["check", quickstart.to_str().unwrap()])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    use std::os::unix::process::ExitStatusExt;
+    assert!(out.status.success() || out.status.signal() == Some(libc::SIGPIPE), "{:?}: {err}", out.status);
 }
