@@ -67,6 +67,18 @@ SQUAT_PITCH = 0.24
 TOE_CROUCH = {"Hip_Pitch": -1.7, "Knee_Pitch": 2.3, "Ankle_Pitch": -0.2, "Shoulder_Pitch": 0.0,
               "Elbow_Yaw": -0.3}
 TOE_CROUCH_PITCH = 0.25
+
+
+def toe_crouch_joints(stand: np.ndarray) -> np.ndarray:
+  """The 23 joints of the crouch end of `kneel_to_crouch`: `stand` with TOE_CROUCH set on the
+  left side and mirrored onto the right (roll and yaw joints change sign)."""
+  q = np.array(stand, np.float32)
+  for joint, value in TOE_CROUCH.items():
+    q[robot.JOINT_NAMES.index(f"Left_{joint}")] = value
+  mirrored = np.asarray(robot.mirror_joint_vector(q))
+  right = [i for i, name in enumerate(robot.JOINT_NAMES) if name.startswith("Right_")]
+  q[right] = mirrored[right]
+  return q
 # With an obstacle, the legs start spread by this hip roll so the ball fits between them.
 OBSTACLE_LEG_SPREAD = 0.15
 
@@ -204,12 +216,7 @@ class ScenarioSampler:
     if family == "kneel_to_crouch":
       kneel = self.key_qpos[KEYFRAME_SCENARIOS.index("ksi_prone_3")]
       kneel_pitch = 2.0 * math.atan2(float(kneel[5]), float(kneel[3]))  # a pure pitch (y) quat
-      crouch = np.array(self.stand)
-      for side, sign in (("Left", 1.0), ("Right", -1.0)):
-        for joint, value in TOE_CROUCH.items():
-          # Elbow yaw mirrors with a sign change; the pitch joints do not.
-          crouch[self.j[f"{side}_{joint}"]] = sign * value if joint == "Elbow_Yaw" else value
-      kneel_q, crouch = jnp.asarray(kneel[7:]), jnp.asarray(crouch)
+      kneel_q, crouch = jnp.asarray(kneel[7:]), jnp.asarray(toe_crouch_joints(self.stand))
 
       def kneel_to_crouch(z, scenario):
         u = z.u[0]

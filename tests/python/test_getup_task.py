@@ -23,7 +23,8 @@ from jax_env.learner import monitor as monitor_lib
 from jax_env.learner import networks as nets_lib
 from jax_env.learner import ppo as ppo_lib
 from jax_env.learner import train as train_lib
-from jax_env.scenarios import REST_CLEARANCE, SQUAT, SQUAT_PITCH, TOE_CROUCH, TOE_CROUCH_PITCH
+from jax_env.scenarios import (REST_CLEARANCE, SQUAT, SQUAT_PITCH, TOE_CROUCH, TOE_CROUCH_PITCH,
+                               toe_crouch_joints)
 
 B = 4
 
@@ -71,7 +72,7 @@ def test_stand_and_squat_start_on_their_feet_without_settling(upright_env):
 def _trunk_pitch(qpos):
   """Pitch of pure-pitch base quaternions (w, x, y, z) [B, 4] up to heading (the sampler adds a
   random yaw about world z; the pitch is the tilt of the Trunk's z axis)."""
-  w, x, y, z = (qpos[:, 3 + i] for i in range(4))
+  x, y = qpos[:, 4], qpos[:, 5]
   zz = 1 - 2 * (x * x + y * y)  # world-z component of the Trunk's z axis
   return np.arccos(np.clip(zz, -1.0, 1.0))
 
@@ -107,16 +108,13 @@ def test_zero_action_stands_up_from_the_crouch_end_but_not_from_the_kneel():
   stand, _ = robot.keyframe(model, "stand")
   kneel, _ = robot.keyframe(model, "ksi_prone_3")
   crouch = stand.copy()
-  for side, sign in (("Left", 1.0), ("Right", -1.0)):
-    for joint, value in TOE_CROUCH.items():
-      crouch[7 + robot.JOINT_NAMES.index(f"{side}_{joint}")] = (
-          sign * value if joint == "Elbow_Yaw" else value)
+  crouch[7:] = toe_crouch_joints(stand[7:])
   crouch[3:7] = [math.cos(TOE_CROUCH_PITCH / 2), 0.0, math.sin(TOE_CROUCH_PITCH / 2), 0.0]
 
   def stood(qpos):
     data = mujoco.MjData(model)
     data.qpos[:] = qpos
-    data.qpos[2] = 0.0
+    data.qpos[2] = 0.0  # placed by its lowest point below
     data.qpos[2] = REST_CLEARANCE - float(lowest_point(jnp.asarray(data.qpos, jnp.float32)))
     trunk = model.body("Trunk").id
     held = 0.0
