@@ -184,6 +184,16 @@ def mirror_quat(q):
   return q * QUAT_MIRROR_SIGN.astype(q.dtype)
 
 
+def mirror_left_to_right(joints: np.ndarray) -> np.ndarray:
+  """[23] joints with the right side set to the mirror image of the left (roll and yaw joints
+  change sign); centre-line joints unchanged."""
+  q = np.array(joints, copy=True)
+  mirrored = np.asarray(mirror_joint_vector(q))
+  right = [i for i, name in enumerate(JOINT_NAMES) if name.startswith("Right_")]
+  q[right] = mirrored[right]
+  return q
+
+
 def mirror_qpos(qpos):
   """Mirrors a full [..., 30] qpos (free joint position + quaternion, then joints)."""
   return np.concatenate([

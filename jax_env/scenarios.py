@@ -75,10 +75,9 @@ def toe_crouch_joints(stand: np.ndarray) -> np.ndarray:
   q = np.array(stand, np.float32)
   for joint, value in TOE_CROUCH.items():
     q[robot.JOINT_NAMES.index(f"Left_{joint}")] = value
-  mirrored = np.asarray(robot.mirror_joint_vector(q))
-  right = [i for i, name in enumerate(robot.JOINT_NAMES) if name.startswith("Right_")]
-  q[right] = mirrored[right]
-  return q
+  return robot.mirror_left_to_right(q)
+
+
 # With an obstacle, the legs start spread by this hip roll so the ball fits between them.
 OBSTACLE_LEG_SPREAD = 0.15
 
