@@ -29,8 +29,8 @@ from jax_env.stage_config import (ACTION_MAPPINGS, DR_DISTRIBUTIONS, DR_OPERATIO
                                   LR_SCHEDULES, ON_MISS, SCHEDULE_KEYS, ActionConfig,
                                   AdvanceConfig, AssistConfig, ConstraintsConfig, DelayConfig,
                                   DomainRandomizationConfig, DRParam, MirrorConfig,
-                                  MonitorConfig, PenaltySchedule, PPOConfig, PushConfig,
-                                  RewardParams, RewardShaping, RMAConfig, ScenarioParams,
+                                  MonitorConfig, PPOConfig, PushConfig, RewardParams,
+                                  RewardShaping, RMAConfig, ScenarioParams, Schedule,
                                   SimConfig, StageConfig, SuccessConfig, TerminationConfig,
                                   TerrainConfig)
 
@@ -38,9 +38,9 @@ __all__ = [
     "ConfigError", "check_stage", "parse_stage",
     # The typed stage (jax_env.stage_config), re-exported as this module's result types.
     "ActionConfig", "AdvanceConfig", "AssistConfig", "ConstraintsConfig", "DelayConfig",
-    "DomainRandomizationConfig", "DRParam", "MirrorConfig", "MonitorConfig", "PenaltySchedule",
+    "DomainRandomizationConfig", "DRParam", "MirrorConfig", "MonitorConfig",
     "PPOConfig", "PushConfig", "RewardParams", "RewardShaping", "RMAConfig", "ScenarioParams",
-    "SimConfig", "StageConfig", "SuccessConfig", "TerminationConfig", "TerrainConfig",
+    "Schedule", "SimConfig", "StageConfig", "SuccessConfig", "TerminationConfig", "TerrainConfig",
 ]
 
 _SUM_TOLERANCE = 1e-6
@@ -491,7 +491,7 @@ class _Parser:
     if by == "stand_rate" and any(not 0.0 <= x <= 1.0 for x, _ in points):
       self.err(p + ["points"], "stand-rate points must have x in [0, 1]")
       return None
-    return PenaltySchedule(by=by, points=tuple(points))
+    return Schedule(by=by, points=tuple(points))
 
   def termination(self, d):
     p = ["termination"]

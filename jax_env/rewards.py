@@ -21,6 +21,13 @@ Choices where the paper's table is ambiguous:
   * `upright` is exp(−2‖(0, 0, −1) − g‖²) (mjlab), a reward where `orientation` is a penalty.
   * `dof_pos_ref` applies only within `dof_pos_ref_band` of the target height when the band
     is set (the paper's code: near standing only), so that it does not fight the get-up.
+  * `not_prone` pays for turning the chest away from the floor: clip((1 − g_x)/0.5, 0, 1) with g
+    the gravity direction in the Trunk frame (g_x = 1 lying prone, 0.85 on hands and knees in
+    `ksi_prone_3`, 0 standing, −1 lying supine): 0 face down, rising with every degree of roll
+    or pitch away from it, 1 from a 30° forward lean on (the supine get-up's lean, g_x 0.26 in
+    `ksi_supine_3`, is left alone). Ours: in this model the sagittal rise from the knees needs
+    a spring the motors' velocity limits do not allow (README), so the prone get-up within
+    reach rolls onto the back first.
   * Hip roll is Σ over both hips of (q − q_ref)² with the left/right-mirrored reference
     (q_ref for the left hip, −q_ref for the right: positive left roll and negative right roll
     both spread the legs).
@@ -139,13 +146,21 @@ def upright(x: Quantities, p: RewardParams) -> jax.Array:
   return jnp.exp(-2.0 * jnp.sum((x.gravity - down) ** 2, axis=-1))
 
 
+# The span of g_x below face down (g_x = 1) over which `not_prone` rises from 0 to 1.
+NOT_PRONE_SPAN = 0.5
+
+
+def not_prone(x: Quantities, p: RewardParams) -> jax.Array:
+  return jnp.clip((1.0 - x.gravity[:, 0]) / NOT_PRONE_SPAN, 0.0, 1.0)
+
+
 TERMS = {
     "survival": survival, "base_height": base_height, "standing": standing,
     "orientation": orientation, "dof_pos_ref": dof_pos_ref, "torques": torques,
     "dof_vel": dof_vel, "dof_acc": dof_acc, "root_acc": root_acc, "action_rate": action_rate,
     "dof_pos_limits": dof_pos_limits, "torque_fatigue": torque_fatigue, "power": power,
     "hip_roll": hip_roll, "trunk_height": trunk_height, "waist_height": waist_height,
-    "upright": upright,
+    "upright": upright, "not_prone": not_prone,
 }
 # The reward vocabulary of curricula (`[stage.rewards]` keys), in this order everywhere.
 REWARD_TERMS: tuple[str, ...] = tuple(TERMS)

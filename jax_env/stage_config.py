@@ -77,12 +77,14 @@ class RewardParams:
 
 
 @dataclasses.dataclass(frozen=True)
-class PenaltySchedule:
-  """Piecewise-linear scale of every penalty (negative weight) over `by` (SCHEDULE_KEYS).
+class Schedule:
+  """A piecewise-linear scale over `by` (SCHEDULE_KEYS): of every penalty (negative weight) in
+  `RewardShaping.penalty_schedule`, of the assisting force in `AssistConfig.schedule`.
 
   points: ((x0, s0), (x1, s1), ...) with x increasing; constant beyond the ends. With
-  by = "stand_rate" the scale never decreases within a stage (a ratchet): a dip in the stand
-  rate does not take the smoothing pressure away again.
+  by = "stand_rate" the scale is a ratchet within a stage (the learner's `ScheduleScale`):
+  penalties never decrease (a dip in the stand rate does not take the smoothing pressure away
+  again) and the assist never increases.
   """
 
   by: str
@@ -105,7 +107,7 @@ class RewardShaping:
 
   scale_by_ctrl_dt: bool = False  # weights × control period (the paper's code, legged_gym)
   clip_at_zero: bool = False  # total clipped at 0 from below (`only_positive_rewards`)
-  penalty_schedule: PenaltySchedule | None = None  # None: penalties at full weight always
+  penalty_schedule: Schedule | None = None  # None: penalties at full weight always
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,7 +129,7 @@ class AssistConfig:
   ends, so that the final policy stands up by itself."""
 
   force: float = 0.0  # N at scale 1; 0: off
-  schedule: PenaltySchedule | None = None  # None: the full force throughout
+  schedule: Schedule | None = None  # None: the full force throughout
 
 
 @dataclasses.dataclass(frozen=True)

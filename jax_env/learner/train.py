@@ -62,7 +62,7 @@ class LearnerConfig:
   mirror_weight: float
   env_steps: int  # the PPO budget: advance.env_steps
   action: Mapping[str, Any]  # {"mapping", "scale", "clip"}, recorded in checkpoints
-  penalty_schedule: Any = None  # config.PenaltySchedule, or None: penalties at full weight
+  penalty_schedule: Any = None  # config.Schedule, or None: penalties at full weight
   assist: Any = None  # config.AssistConfig, or None: no assisting force
   monitor: Any = None  # config.MonitorConfig with its scenarios resolved, or None: off
 
@@ -88,11 +88,11 @@ class LearnerConfig:
 
 @dataclasses.dataclass(frozen=True)
 class ScheduleScale:
-  """A stage schedule (config.PenaltySchedule) as the learner applies it, one value per
+  """A stage schedule (config.Schedule) as the learner applies it, one value per
   iteration. By stand rate the value moves one way only (`ratchet`): `max` for penalties, which
   do not ease off when the stand rate dips, `min` for the assist, which does not come back."""
 
-  schedule: Any  # config.PenaltySchedule or None (the value is then 1 throughout)
+  schedule: Any  # config.Schedule or None (the value is then 1 throughout)
   ratchet: Callable[[float, float], float] = max
 
   @property

@@ -483,6 +483,18 @@ def test_upright_is_one_upright_and_small_lying():
   assert up[2] == pytest.approx(math.exp(-8.0))  # upside down
 
 
+def test_not_prone_rises_from_face_down_and_leaves_the_supine_get_up_alone():
+  # Trunk-frame gravity of: lying prone, ksi_prone_3 (hands and knees), ksi_supine_3's forward
+  # lean, standing, lying supine, lying on the side (the keyframes' values, rounded).
+  g = jnp.array([[1.0, 0.0, -0.07], [0.85, 0.0, -0.52], [0.26, 0.0, -0.96], [0.0, 0.0, -1.0],
+                 [-1.0, 0.0, 0.09], [0.0, 1.0, 0.0]])
+  value = np.asarray(rewards.not_prone(_quantities(6, gravity=g), GETUP_PARAMS))
+  np.testing.assert_allclose(value, [0.0, 0.3, 1.0, 1.0, 1.0, 1.0], atol=1e-6)
+  # A gradient all the way from face down: a small roll already pays.
+  rolled = jnp.array([[math.cos(0.2), math.sin(0.2), 0.0]])
+  assert float(rewards.not_prone(_quantities(1, gravity=rolled), GETUP_PARAMS)[0]) > 0.03
+
+
 def test_dof_pos_ref_applies_only_near_the_target_height():
   q = jnp.full((2, robot.NUM_JOINTS), 0.1)
   x = _quantities(2, q=q, base_height=jnp.array([0.65, 0.3]))

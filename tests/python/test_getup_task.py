@@ -253,11 +253,11 @@ def test_max_action_std_is_validated():
 
 
 def test_penalty_schedule_by_env_steps_and_by_stand_rate():
-  by_steps = config.PenaltySchedule("env_steps", ((0.0, 0.0), (100.0, 0.0), (300.0, 1.0)))
+  by_steps = config.Schedule("env_steps", ((0.0, 0.0), (100.0, 0.0), (300.0, 1.0)))
   scale = train_lib.ScheduleScale(by_steps)
   assert scale.initial == 0.0
   assert [scale.after(0.0, s, None) for s in (50, 100, 200, 300, 900)] == [0, 0, 0.5, 1, 1]
-  by_rate = train_lib.ScheduleScale(config.PenaltySchedule("stand_rate", ((0.2, 0.0),
+  by_rate = train_lib.ScheduleScale(config.Schedule("stand_rate", ((0.2, 0.0),
                                                                          (0.6, 1.0))))
   s = by_rate.after(by_rate.initial, 0, 0.4)
   assert s == pytest.approx(0.5)
@@ -267,7 +267,7 @@ def test_penalty_schedule_by_env_steps_and_by_stand_rate():
 
 
 def test_assist_schedule_ratchets_down_and_is_validated():
-  fade = config.PenaltySchedule("stand_rate", ((0.0, 1.0), (0.5, 0.0)))
+  fade = config.Schedule("stand_rate", ((0.0, 1.0), (0.5, 0.0)))
   assist = train_lib.ScheduleScale(fade, ratchet=min)
   assert assist.initial == 1.0
   s = assist.after(1.0, 0, 0.25)

@@ -37,6 +37,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from jax_env import robot
 from jax_env.robot import JOINT_NAMES
 
 SCENE = Path(__file__).resolve().parents[1] / "scene.xml"
@@ -65,18 +66,27 @@ class Posture:
   settle: bool = True
 
   def joints(self) -> np.ndarray:
-    sp, sr, ep, ey = self.arm
-    rsp, rsr, rep, rey = self.arm_right or self.arm
-    hp, hr, hy, kn, ap, ar = self.leg
-    rhp, rhr, rhy, rkn, rap, rar = self.leg_right or self.leg
-    return np.array([
-        *self.head,
-        sp, sr, ep, ey,
-        rsp, -rsr, rep, -rey,
-        0.0,
-        hp, hr, hy, kn, ap, ar,
-        rhp, -rhr, -rhy, rkn, rap, -rar,
-    ])
+    q = robot.mirror_left_to_right(_left_side(self.head, self.arm, self.leg))
+    own_right = robot.mirror_left_to_right(
+        _left_side(self.head, self.arm_right or self.arm, self.leg_right or self.leg))
+    q[RIGHT_SIDE] = own_right[RIGHT_SIDE]
+    return q
+
+
+ARM_JOINTS = ("Shoulder_Pitch", "Shoulder_Roll", "Elbow_Pitch", "Elbow_Yaw")
+LEG_JOINTS = ("Hip_Pitch", "Hip_Roll", "Hip_Yaw", "Knee_Pitch", "Ankle_Pitch", "Ankle_Roll")
+RIGHT_SIDE = [i for i, name in enumerate(JOINT_NAMES) if name.startswith("Right_")]
+
+
+def _left_side(head, arm, leg) -> np.ndarray:
+  """[23] joints: the head's and the left arm's and leg's values, zeros elsewhere."""
+  q = np.zeros(len(JOINT_NAMES))
+  values = dict(zip(("AAHead_yaw", "Head_pitch"), head))
+  values |= {f"Left_{j}": v for j, v in zip(ARM_JOINTS, arm)}
+  values |= {f"Left_{j}": v for j, v in zip(LEG_JOINTS, leg)}
+  for name, v in values.items():
+    q[JOINT_NAMES.index(name)] = v
+  return q
 
 
 HOME_ARM = (0.0, -1.4, 0.0, -0.4)

@@ -173,13 +173,14 @@ pub struct RewardShaping {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub clip_at_zero: Option<bool>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub penalty_schedule: Option<PenaltySchedule>,
+    pub penalty_schedule: Option<Schedule>,
 }
 
-/// `penalty_schedule = { by = "env_steps" | "stand_rate", points = [[x, scale], ...] }`.
+/// `{ by = "env_steps" | "stand_rate", points = [[x, scale], ...] }`: a piecewise-linear scale,
+/// of the penalties (`penalty_schedule`) or of the assisting force (`[stage.assist] schedule`).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct PenaltySchedule {
+pub struct Schedule {
     pub by: ScheduleBy,
     pub points: Vec<SchedulePoint>,
 }
@@ -222,7 +223,7 @@ pub struct Assist {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub force: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub schedule: Option<PenaltySchedule>,
+    pub schedule: Option<Schedule>,
 }
 
 /// `[stage.monitor]`: the deterministic-policy monitor run during training (jax_env/config.py
