@@ -25,9 +25,9 @@ Choices where the paper's table is ambiguous:
     the gravity direction in the Trunk frame (g_x = 1 lying prone, 0.85 on hands and knees in
     `ksi_prone_3`, 0 standing, −1 lying supine): 0 face down, rising with every degree of roll
     or pitch away from it, 1 from a 30° forward lean on (the supine get-up's lean, g_x 0.26 in
-    `ksi_supine_3`, is left alone). Ours: in this model the sagittal rise from the knees needs
-    a spring the motors' velocity limits do not allow (README), so the prone get-up within
-    reach rolls onto the back first.
+    `ksi_supine_3`, is left alone). Ours: no open-loop schedule searched in the training
+    environment rises from the knees within the motors' velocity limits (README), while
+    rolling onto the back is easy, so a prone get-up may go through the supine one.
   * Hip roll is Σ over both hips of (q − q_ref)² with the left/right-mirrored reference
     (q_ref for the left hip, −q_ref for the right: positive left roll and negative right roll
     both spread the legs).
