@@ -184,13 +184,15 @@ def mirror_quat(q):
   return q * QUAT_MIRROR_SIGN.astype(q.dtype)
 
 
+# Indices of the right side's joints in JOINT_NAMES.
+RIGHT_JOINTS = [i for i, name in enumerate(JOINT_NAMES) if name.startswith("Right_")]
+
+
 def mirror_left_to_right(joints: np.ndarray) -> np.ndarray:
   """[23] joints with the right side set to the mirror image of the left (roll and yaw joints
   change sign); centre-line joints unchanged."""
   q = np.array(joints, copy=True)
-  mirrored = np.asarray(mirror_joint_vector(q))
-  right = [i for i, name in enumerate(JOINT_NAMES) if name.startswith("Right_")]
-  q[right] = mirrored[right]
+  q[RIGHT_JOINTS] = np.asarray(mirror_joint_vector(q))[RIGHT_JOINTS]
   return q
 
 

@@ -66,16 +66,15 @@ class Posture:
   settle: bool = True
 
   def joints(self) -> np.ndarray:
-    q = robot.mirror_left_to_right(_left_side(self.head, self.arm, self.leg))
-    own_right = robot.mirror_left_to_right(
+    q = _left_side(self.head, self.arm, self.leg)
+    right = robot.mirror_left_to_right(
         _left_side(self.head, self.arm_right or self.arm, self.leg_right or self.leg))
-    q[RIGHT_SIDE] = own_right[RIGHT_SIDE]
+    q[robot.RIGHT_JOINTS] = right[robot.RIGHT_JOINTS]
     return q
 
 
 ARM_JOINTS = ("Shoulder_Pitch", "Shoulder_Roll", "Elbow_Pitch", "Elbow_Yaw")
 LEG_JOINTS = ("Hip_Pitch", "Hip_Roll", "Hip_Yaw", "Knee_Pitch", "Ankle_Pitch", "Ankle_Roll")
-RIGHT_SIDE = [i for i, name in enumerate(JOINT_NAMES) if name.startswith("Right_")]
 
 
 def _left_side(head, arm, leg) -> np.ndarray:
