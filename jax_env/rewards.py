@@ -27,7 +27,8 @@ Choices where the paper's table is ambiguous:
     or pitch away from it, 1 from a 30° forward lean on (the supine get-up's lean, g_x 0.26 in
     `ksi_supine_3`, is left alone). Ours: no open-loop schedule searched in the training
     environment rises from the knees within the motors' velocity limits (README), while
-    rolling onto the back is easy, so a prone get-up may go through the supine one.
+    rolling onto the back is easy; with weight 4 in cpu.toml's stage 2 the policy learned to
+    get up from prone by rolling onto its back and rising as from supine (README).
   * Hip roll is Σ over both hips of (q − q_ref)² with the left/right-mirrored reference
     (q_ref for the left hip, −q_ref for the right: positive left roll and negative right roll
     both spread the legs).

@@ -211,7 +211,7 @@ fn unreadable_file() {
 
 #[test]
 fn shipped_curricula_are_valid() {
-    for name in ["curricula/hifar.toml", "curricula/quickstart.toml"] {
+    for name in ["curricula/hifar.toml", "curricula/quickstart.toml", "curricula/cpu.toml"] {
         let c = load(&repo().join(name)).unwrap_or_else(|e| panic!("{e}"));
         let names: Vec<&str> = c.stages().iter().map(|s| s.name()).collect();
         assert_eq!(names, ["planar", "full"], "{name}");
