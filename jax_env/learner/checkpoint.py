@@ -18,14 +18,17 @@ possibly KL-adapted, PPO learning rate) and `opt/adaptation/count` (int32, adapt
 Adam steps).
 
 Normalizer fills: mean 0 and std 1, so a new feature enters unscaled (and meets zero weights).
-`summed_variance` (Welford's running sum) cannot be given a constant fill consistent with
-std 1 (that would be `count`), so it is annotated with fill 0: whenever the learner STARTS a
-stage from a checkpoint (`init_checkpoint`) it treats mean and std as a prior worth at most
-one iteration of samples (count := min(count, samples per iteration), summed_variance :=
-std² · count). A new stage brings new observation distributions (features that were constant
-in the previous stage, such as pushes, delay or terrain slope, start to vary), and statistics
-accumulated over a whole stage would follow them only after as many samples again; with the
-rebased count they follow within a few iterations. Exact resume restores everything as stored.
+`summed_variance` (Welford's running sum) has fill 0. When the learner STARTS a stage from a
+checkpoint (`init_checkpoint`, `stage_start=True`) it keeps the statistics, count included, of
+every feature that varied in the previous stage, so the policy's inputs mean what they meant
+when it was trained. (Rebasing them to a prior worth one iteration, as hifar did before, let
+every mean and std follow the new stage's randomized, pushed data within a few iterations;
+the inputs shifted under the policy and every get-up it had was lost within 10 iterations.)
+A feature that never varied (recorded std at most UNSEEN_STD: new in this stage, or constant
+in the previous one, like the domain-randomization factors of a stage without randomization)
+carried no information, so the weights that read it were never trained; they are set to zero
+like a new feature's, and its statistics are calibrated on the stage's first batch (see
+`networks.calibrate_normalizer`). Exact resume restores everything as stored.
 
 Writes are atomic: every file goes to a temporary sibling directory, is fsynced, and the
 directory is renamed into place (and the parent fsynced); `LATEST` is replaced the same way.
@@ -191,7 +194,7 @@ def tensor_annotations(tensors: Mapping[str, np.ndarray],
 # Restoring state.
 
 
-def _normalizer_from(tensors, template, used, prior_count: int | None):
+def _normalizer_from(tensors, template, used):
   if "normalizer/count" not in tensors:
     raise CheckpointError("checkpoint has no tensor normalizer/count")
   raw = np.asarray(tensors["normalizer/count"])
@@ -206,10 +209,6 @@ def _normalizer_from(tensors, template, used, prior_count: int | None):
     stats[field] = {kind: _take(tensors, f"normalizer/{kind}/{field}",
                                 getattr(template, field)[kind], used)
                     for kind in ("obs", "privileged")}
-  if prior_count is not None:
-    count = min(count, int(prior_count))
-    stats["summed_variance"] = jax.tree_util.tree_map(
-        lambda s: jnp.square(s) * jnp.float32(count), stats["std"])
   return running_statistics.RunningStatisticsState(
       count=brax_types.UInt64(hi=np.uint32(count >> 32), lo=np.uint32(count & 0xFFFFFFFF)),
       mean=stats["mean"], std=stats["std"], summed_variance=stats["summed_variance"],
@@ -231,18 +230,20 @@ def _opt_from(tensors, template, count_name, used, fresh: bool):
 
 def restore_learner(template: ppo_lib.LearnerState, tensors: Mapping[str, np.ndarray], *,
                     fresh_optimizer: bool, learning_rate: float | None = None,
-                    normalizer_prior_count: int | None = None) -> ppo_lib.LearnerState:
+                    stage_start: nets_lib.NetworkConfig | None = None
+                    ) -> ppo_lib.LearnerState:
   """A learner state shaped like `template` from checkpoint tensors.
 
   fresh_optimizer (a stage starting from another stage's weights): Adam step counters start
-  at 0 and the learning rate at `learning_rate`; moments are kept. normalizer_prior_count
-  rebases the observation statistics to a prior of at most that many samples (see the module
-  docstring). Without them (exact resume) everything is restored as stored. Every tensor of
-  the checkpoint must be used: a leftover means a layout this stage does not have.
+  at 0 and the learning rate at `learning_rate`; moments are kept. stage_start (that stage's
+  network config): the input weights of the features that never varied are zeroed (see the
+  module docstring and `unseen_features`). Without them (exact resume) everything is restored
+  as stored. Every tensor of the checkpoint must be used: a leftover means a layout this stage
+  does not have.
   """
   used: set[str] = set()
   params = _unflatten_like(template.params, "", tensors, used)
-  normalizer = _normalizer_from(tensors, template.normalizer, used, normalizer_prior_count)
+  normalizer = _normalizer_from(tensors, template.normalizer, used)
   opt_state = _opt_from(tensors, template.opt_state, "opt/count", used, fresh_optimizer)
   adapt_opt_state = _opt_from(tensors, template.adapt_opt_state, "opt/adaptation/count", used,
                               fresh_optimizer)
@@ -253,8 +254,56 @@ def restore_learner(template: ppo_lib.LearnerState, tensors: Mapping[str, np.nda
   if extra:
     raise CheckpointError(f"checkpoint has tensors this stage's network does not: "
                           f"{', '.join(extra[:8])}{' …' if len(extra) > 8 else ''}")
+  if stage_start is not None:
+    params = _without_unseen_inputs(params, unseen_features(normalizer), stage_start)
   return template.replace(params=params, normalizer=normalizer, opt_state=opt_state,
                           adapt_opt_state=adapt_opt_state, learning_rate=lr)
+
+
+# A feature whose recorded standard deviation is at most this never varied: it is new (fill:
+# summed_variance 0) or was constant (brax clips a constant's std to 1e-6).
+UNSEEN_STD = 1e-4
+
+
+def unseen_features(normalizer) -> dict[str, np.ndarray]:
+  """{"obs", "privileged"}: bool per feature, True where the statistics never saw it vary."""
+  count = max(int(normalizer.count.to_numpy()), 1)
+  return {kind: np.asarray(normalizer.summed_variance[kind]) / count <= UNSEEN_STD ** 2
+          for kind in ("obs", "privileged")}
+
+
+def _without_unseen_inputs(params, unseen: Mapping[str, np.ndarray],
+                           config: nets_lib.NetworkConfig) -> dict:
+  """params with every weight that reads an unseen feature set to zero. Which axis of which
+  tensor reads which feature comes from the checkpoint annotations (`_annotation`), the same
+  that the CLI expands checkpoints with."""
+  out = {}
+  for name, x in _flatten(params, "").items():
+    x = np.array(x)
+    for axis, segments in enumerate(_annotation(name, x.shape, config)["axes"]):
+      if not segments or not any(seg.get("features") in unseen for seg in segments):
+        continue  # not an input axis (an output axis reads no feature)
+      rows = np.concatenate([unseen[seg["features"]] if "features" in seg
+                             else np.zeros(seg["fixed"], bool) for seg in segments])
+      if rows.shape[0] != x.shape[axis]:
+        raise CheckpointError(f"tensor {name}: axis {axis} has {x.shape[axis]} entries, its "
+                              f"annotation {rows.shape[0]}")
+      index = [slice(None)] * x.ndim
+      index[axis] = rows
+      x[tuple(index)] = 0.0
+    out[name] = jnp.asarray(x)
+  return _nest(out)
+
+
+def _nest(flat: Mapping[str, Any]) -> dict:
+  out: dict = {}
+  for name, v in flat.items():
+    *parents, leaf = name.split("/")
+    node = out
+    for p in parents:
+      node = node.setdefault(p, {})
+    node[leaf] = v
+  return out
 
 
 def restore_params(nets: nets_lib.Networks, tensors: Mapping[str, np.ndarray]):
@@ -264,7 +313,7 @@ def restore_params(nets: nets_lib.Networks, tensors: Mapping[str, np.ndarray]):
       jax.random.PRNGKey(0))
   used: set[str] = set()
   params = _unflatten_like(template.params, "", tensors, used)
-  normalizer = _normalizer_from(tensors, template.normalizer, used, None)
+  normalizer = _normalizer_from(tensors, template.normalizer, used)
   return params, normalizer
 
 

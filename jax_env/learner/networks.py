@@ -270,6 +270,37 @@ def update_normalizer(normalizer, obs: jax.Array, privileged: jax.Array,
       pmap_axis_name=axis_name)
 
 
+# brax's running_statistics.update bounds every std to these.
+NORMALIZER_STD_MIN, NORMALIZER_STD_MAX = 1e-6, 1e6
+
+
+def calibrate_normalizer(normalizer, obs: jax.Array, privileged: jax.Array, mask,
+                         axis_name: str | None = None):
+  """The statistics with every feature where `mask` ({"obs", "privileged"}: [n], > 0 = yes)
+  replaced by this batch's mean and std (over devices), its summed_variance consistent with
+  the count (std² · count): a feature the statistics never saw vary (checkpoint.py,
+  `unseen_features`) takes its scale from the first batch of the stage instead of being
+  clipped at ±NORMALIZED_CLIP for as long as a whole stage's count takes to absorb it.
+  A zero mask changes nothing."""
+  count = (jnp.float32(normalizer.count.hi) * jnp.float32(2.0 ** 32)
+           + jnp.float32(normalizer.count.lo))
+  batch = {"obs": obs.reshape(-1, obs.shape[-1]),
+           "privileged": privileged.reshape(-1, privileged.shape[-1])}
+  mean, std, summed = {}, {}, {}
+  for kind, x in batch.items():
+    m = jnp.mean(x, axis=0)
+    sq = jnp.mean(jnp.square(x), axis=0)
+    if axis_name is not None:
+      m, sq = jax.lax.pmean(m, axis_name), jax.lax.pmean(sq, axis_name)
+    s = jnp.clip(jnp.sqrt(jnp.maximum(sq - jnp.square(m), 0.0)), NORMALIZER_STD_MIN,
+                 NORMALIZER_STD_MAX)
+    on = mask[kind] > 0
+    mean[kind] = jnp.where(on, m, normalizer.mean[kind])
+    std[kind] = jnp.where(on, s, normalizer.std[kind])
+    summed[kind] = jnp.where(on, jnp.square(s) * count, normalizer.summed_variance[kind])
+  return normalizer.replace(mean=mean, std=std, summed_variance=summed)
+
+
 # ---------------------------------------------------------------------------------------------
 # The deployable actor and the training-time policy.
 

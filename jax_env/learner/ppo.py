@@ -15,7 +15,8 @@ One update (called once per iteration, inside the device-parallel step):
      Adam, learning rate fixed or adapted from the KL between the collecting policy and the
      current one (brax / rsl_rl rule: ÷1.5 above 2·desired_kl, ×1.5 below desired_kl/2).
   3. The running observation statistics absorb the batch AFTER the epochs, so the importance
-     ratios and KL of the epochs compare policies under the same normalization.
+     ratios and KL of the epochs compare policies under the same normalization (and on a
+     stage's first iteration, features never seen varying take this batch's statistics).
 """
 
 from __future__ import annotations
@@ -203,8 +204,10 @@ def bound_action_std(train_params: dict, max_action_std: float | None) -> dict:
 
 def ppo_update(state: LearnerState, data: Transition, final_obs, final_privileged,
                key: jax.Array, *, nets: nets_lib.Networks, cfg, mirror_weight: float, maps,
-               axis_name: str | None = None):
-  """One PPO update on a rollout [T, B_local]; returns (state, metrics averaged)."""
+               calibrate=None, axis_name: str | None = None):
+  """One PPO update on a rollout [T, B_local]; returns (state, metrics averaged).
+  calibrate: per-feature masks for `networks.calibrate_normalizer` (the first iteration of a
+  stage started from a checkpoint), or None."""
   params = state.params
   normalizer = state.normalizer
   targets, advantages = compute_targets(nets, params, normalizer, data, final_obs,
@@ -252,6 +255,9 @@ def ppo_update(state: LearnerState, data: Transition, final_obs, final_privilege
 
   if cfg.normalize_observations:
     normalizer = nets_lib.update_normalizer(normalizer, data.obs, data.privileged, axis_name)
+    if calibrate is not None:
+      normalizer = nets_lib.calibrate_normalizer(normalizer, data.obs, data.privileged,
+                                                 calibrate, axis_name)
   new_params = dict(params)
   new_params.update(train_params)
   return state.replace(params=new_params, opt_state=opt_state, learning_rate=lr,

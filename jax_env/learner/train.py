@@ -277,7 +277,8 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
   def scan_stats(stats):
     return jax.tree_util.tree_map(lambda x: jax.lax.psum(jnp.sum(x), AXIS), stats)
 
-  def ppo_iteration(learner: ppo_lib.LearnerState, env_state, history, key, schedules):
+  def ppo_iteration(learner: ppo_lib.LearnerState, env_state, history, key, schedules,
+                    calibrate):
     k_roll, k_update = jax.random.split(key)
     env_state = _with_schedules(env, env_state, schedules)
     params, normalizer = learner.params, learner.normalizer
@@ -300,11 +301,12 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
         step, (env_state, history), jax.random.split(k_roll, unroll))
     learner, metrics = ppo_lib.ppo_update(
         learner, data, env_state.obs, env_state.privileged, k_update, nets=nets, cfg=ppo_cfg,
-        mirror_weight=config.mirror_weight, maps=maps, axis_name=AXIS)
+        mirror_weight=config.mirror_weight, maps=maps, calibrate=calibrate, axis_name=AXIS)
     return learner, env_state, history, metrics, scan_stats(stats)
 
   def adaptation_iteration(learner: ppo_lib.LearnerState, env_state, history, key,
-                           schedules):
+                           schedules, calibrate):
+    del calibrate  # the adaptation phase leaves the statistics alone
     params, normalizer = learner.params, learner.normalizer
     env_state = _with_schedules(env, env_state, schedules)
 
@@ -347,7 +349,8 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
     num_envs: overrides ppo.num_envs; must divide by num_minibatches × devices.
     init_checkpoint: start from these weights (same feature layout: expand it first), with
       fresh optimizer step counters, the stage's learning rate, and observation statistics
-      rebased to a one-iteration prior (checkpoint.py explains why).
+      kept; the input weights of features that never varied are zeroed and those features'
+      statistics are taken from the stage's first batch (checkpoint.py explains why).
     resume_checkpoint: continue exactly where this checkpoint stopped (needs its rollout
       state); wins over init_checkpoint.
     callback: called after every iteration with the progress dict of the facade contract;
@@ -388,6 +391,10 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
   template = jax.jit(lambda k: ppo_lib.init_learner_state(nets, nets.init(k), p.max_grad_norm,
                                                           p.learning_rate))(k_init)
   learner = template
+  # Features whose statistics the first PPO iteration sets from its batch (none unless the
+  # stage starts from another stage's checkpoint).
+  calibrate = {kind: np.zeros(np.shape(template.normalizer.mean[kind]), np.float32)
+               for kind in ("obs", "privileged")}
   penalty = ScheduleScale(config.penalty_schedule)
   assist = ScheduleScale(config.assist.schedule if config.assist else None, ratchet=min)
   progress = Progress(penalty_scale=penalty.initial, assist_scale=assist.initial)
@@ -428,9 +435,13 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
     ck = ckpt_lib.load(init_checkpoint)
     ckpt_lib.check_layout(ck.meta, *names, net_cfg.meta(), str(init_checkpoint))
     learner = ckpt_lib.restore_learner(template, ck.tensors, fresh_optimizer=True,
-                                       learning_rate=p.learning_rate,
-                                       normalizer_prior_count=steps_per_iter)
-    log(f"stage {config.stage_name}: initialised from {init_checkpoint}")
+                                       learning_rate=p.learning_rate, stage_start=net_cfg)
+    unseen = ckpt_lib.unseen_features(learner.normalizer)
+    calibrate = {k: v.astype(np.float32) for k, v in unseen.items()}
+    log(f"stage {config.stage_name}: initialised from {init_checkpoint}; features never seen "
+        f"varying (input weights zeroed, statistics from the first batch): "
+        f"{int(unseen['obs'].sum())} of {len(unseen['obs'])} observed, "
+        f"{int(unseen['privileged'].sum())} of {len(unseen['privileged'])} privileged")
   if env_state is None:
     env_state = reset(jax.random.split(k_env, batch))
     if hasattr(env, "stagger"):
@@ -446,8 +457,8 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
       checkpoints_dir=Path(stage_dir) / "checkpoints", stage_config=stage_config,
       budgets=_Budgets(steps_per_iter=steps_per_iter, ppo=ppo_budget, adaptation=adapt_budget),
       steps={"ppo": ppo_iter, "adaptation": adapt_iter}, monitor=monitor, penalty=penalty,
-      assist=assist, callback=callback, log=log, progress=progress, learner=learner, env_state=env_state,
-      history=history, key=key)
+      assist=assist, callback=callback, log=log, progress=progress, learner=learner,
+      env_state=env_state, history=history, key=key, calibrate=calibrate)
   log(f"stage {config.stage_name}: {batch} envs on {n_dev} device(s), {steps_per_iter} env "
       f"steps per iteration, PPO budget {ppo_budget}, adaptation {adapt_budget}")
   return stage.run()
@@ -504,7 +515,7 @@ class _StageRun:
   def __init__(self, *, config: LearnerConfig, net_cfg, names, devices, batch: int, seed: int,
                checkpoints_dir: Path, stage_config, budgets: _Budgets, steps, monitor,
                penalty: ScheduleScale, assist: ScheduleScale, callback, log,
-               progress: Progress, learner, env_state, history, key):
+               progress: Progress, learner, env_state, history, key, calibrate):
     self.config, self.net_cfg, self.names, self.seed = config, net_cfg, names, seed
     self.checkpoints_dir, self.stage_config = checkpoints_dir, stage_config
     self.budgets, self.steps, self.monitor, self.penalty = budgets, steps, monitor, penalty
@@ -518,6 +529,7 @@ class _StageRun:
     self.env_state = _put(_shard(env_state, self.n_dev), self.sharding)
     self.history = _put(_shard(history, self.n_dev), self.sharding)
     self.key = key
+    self.calibrate = calibrate
 
   def run(self) -> dict:
     progress, budgets = self.progress, self.budgets
@@ -564,9 +576,13 @@ class _StageRun:
     # The adaptation module learns under deployment's conditions: no assist.
     force = self.assist_newtons * progress.assist_scale if phase == "ppo" else 0.0
     schedules = jnp.tile(jnp.asarray([scale, force], jnp.float32), (self.n_dev, 1))
+    calibrate = _put(_replicate(self.calibrate, self.n_dev), self.sharding)
     self.learner, self.env_state, self.history, metrics, stats = self.steps[phase](
         self.learner, self.env_state, self.history,
-        _put(jax.random.split(k_iter, self.n_dev), self.sharding), _put(schedules, self.sharding))
+        _put(jax.random.split(k_iter, self.n_dev), self.sharding), _put(schedules, self.sharding),
+        calibrate)
+    if phase == "ppo":  # calibration is once, on the stage's first batch
+      self.calibrate = jax.tree_util.tree_map(np.zeros_like, self.calibrate)
     metrics, stats = jax.device_get((_unreplicate(metrics), _unreplicate(stats)))
     dt = time.perf_counter() - t0
     steps = self.budgets.steps_per_iter

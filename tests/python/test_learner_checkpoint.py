@@ -165,7 +165,7 @@ def test_zero_filled_expansion_keeps_old_actions_and_zero_new_ones(tmp_path):
   # The whole learner state (optimizer moments included) restores into the new layout.
   template = ppo_lib.init_learner_state(big, big.init(jax.random.PRNGKey(1)), 1.0, 3e-4)
   grown = ckpt_lib.restore_learner(template, tensors, fresh_optimizer=True, learning_rate=3e-4,
-                                   normalizer_prior_count=100)
+                                   stage_start=big_cfg)
   assert int(grown.opt_state[1].count) == 0
   np.testing.assert_allclose(grown.params["policy"]["log_std"][1], math.log(0.3), rtol=1e-6)
 
@@ -201,13 +201,94 @@ def test_zero_filled_expansion_keeps_old_actions_and_zero_new_ones(tmp_path):
   v1 = big.value(grown.params["value"], *nets_lib.normalize(grown.normalizer, new_obs,
                                                             new_priv))
   np.testing.assert_allclose(v1, v0, rtol=1e-5, atol=1e-6)
-  # At a stage start the statistics become a prior of at most 100 samples (std kept: 1 for
-  # new features).
-  assert int(grown.normalizer.count.to_numpy()) == 100
-  np.testing.assert_allclose(grown.normalizer.summed_variance["obs"],
-                             np.square(grown.normalizer.std["obs"]) * 100, rtol=1e-6)
+  # At a stage start the statistics are kept as they were, count included; the new features
+  # (fill: std 1, summed_variance 0) are the unseen ones.
+  assert int(grown.normalizer.count.to_numpy()) == int(state.normalizer.count.to_numpy())
+  np.testing.assert_array_equal(np.asarray(grown.normalizer.mean["obs"])[obs_idx],
+                                np.asarray(state.normalizer.mean["obs"]))
+  np.testing.assert_array_equal(np.asarray(grown.normalizer.std["obs"])[obs_idx],
+                                np.asarray(state.normalizer.std["obs"]))
+  unseen = ckpt_lib.unseen_features(grown.normalizer)
   new_idx = [target["obs"].index("extra/a"), target["obs"].index("extra/b")]
-  np.testing.assert_array_equal(np.asarray(grown.normalizer.std["obs"])[new_idx], 1.0)
+  assert sorted(np.flatnonzero(unseen["obs"])) == sorted(new_idx)
+  assert list(np.flatnonzero(unseen["privileged"])) == [target["privileged"].index("friction")]
+
+
+def test_stage_start_zeroes_the_weights_of_features_that_never_varied(tmp_path):
+  # A privileged and an observed feature that were constant in the previous stage: their
+  # statistics say std 1e-6 (brax's floor), and the weights reading them were never trained.
+  config = _config()
+  nets, state = _trained_like_state(config)
+  rng = np.random.default_rng(1)
+  obs = rng.normal(2.0, 3.0, (500, config.obs_size)).astype(np.float32)
+  priv = rng.normal(-1.0, 0.5, (500, config.privileged_size)).astype(np.float32)
+  obs[:, 1] = 0.25
+  priv[:, 0] = 1.0
+  fresh = ppo_lib.init_learner_state(nets, nets.init(jax.random.PRNGKey(0)), 1.0, 3e-4)
+  state = state.replace(normalizer=nets_lib.update_normalizer(fresh.normalizer, obs, priv))
+  ck = ckpt_lib.load(_save(tmp_path / "ck", state, config))
+  template = ppo_lib.init_learner_state(nets, nets.init(jax.random.PRNGKey(1)), 1.0, 3e-4)
+  kept = ckpt_lib.restore_learner(template, ck.tensors, fresh_optimizer=True,
+                                  learning_rate=3e-4)
+  started = ckpt_lib.restore_learner(template, ck.tensors, fresh_optimizer=True,
+                                     learning_rate=3e-4, stage_start=config)
+  unseen = ckpt_lib.unseen_features(started.normalizer)
+  assert list(np.flatnonzero(unseen["obs"])) == [1]
+  assert list(np.flatnonzero(unseen["privileged"])) == [0]
+  p, q = kept.params, started.params
+  # policy: [obs, latent] -> hidden; value: [obs, privileged]; encoder: privileged;
+  # adaptation: a convolution over observation channels.
+  assert np.any(np.asarray(p["policy"]["hidden_0"]["kernel"])[1] != 0)
+  np.testing.assert_array_equal(np.asarray(q["policy"]["hidden_0"]["kernel"])[1], 0.0)
+  np.testing.assert_array_equal(np.asarray(q["value"]["hidden_0"]["kernel"])[1], 0.0)
+  np.testing.assert_array_equal(
+      np.asarray(q["value"]["hidden_0"]["kernel"])[config.obs_size + 0], 0.0)
+  np.testing.assert_array_equal(np.asarray(q["encoder"]["hidden_0"]["kernel"])[0], 0.0)
+  np.testing.assert_array_equal(np.asarray(q["adaptation"]["conv_0"]["kernel"])[:, 1], 0.0)
+  # Everything else is untouched, and on the previous stage's data (the constants at their
+  # values) every output is the same: only the newly varying inputs lose their weights.
+  changed = {"policy/hidden_0/kernel", "value/hidden_0/kernel", "encoder/hidden_0/kernel",
+             "adaptation/conv_0/kernel"}
+  for name, x in ckpt_lib._flatten(p, "").items():
+    y = ckpt_lib._flatten(q, "")[name]
+    if name not in changed:
+      np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+  hist = np.broadcast_to(obs[:64, None, :], (64, config.history_len, config.obs_size))
+  np.testing.assert_allclose(
+      nets_lib.deployable_mean(nets, q, started.normalizer, obs[:64], hist),
+      nets_lib.deployable_mean(nets, p, kept.normalizer, obs[:64], hist), rtol=1e-4, atol=1e-4)
+  np.testing.assert_allclose(
+      nets_lib.privileged_mean(nets, q, started.normalizer, obs[:64], priv[:64]),
+      nets_lib.privileged_mean(nets, p, kept.normalizer, obs[:64], priv[:64]),
+      rtol=1e-4, atol=1e-4)
+
+
+def test_calibration_sets_unseen_features_from_the_batch_and_keeps_the_rest():
+  config = _config()
+  _, state = _trained_like_state(config)
+  norm = state.normalizer
+  rng = np.random.default_rng(2)
+  obs = rng.normal(5.0, 2.0, (4, 256, config.obs_size)).astype(np.float32)
+  priv = rng.normal(-3.0, 0.25, (4, 256, config.privileged_size)).astype(np.float32)
+  mask = {"obs": np.zeros(config.obs_size, np.float32),
+          "privileged": np.zeros(config.privileged_size, np.float32)}
+  same = nets_lib.calibrate_normalizer(norm, obs, priv, mask)
+  _leaves_equal(same, norm)
+  mask["obs"][2] = 1.0
+  mask["privileged"][0] = 1.0
+  out = nets_lib.calibrate_normalizer(norm, obs, priv, mask)
+  count = int(norm.count.to_numpy())
+  for kind, x, i in (("obs", obs, 2), ("privileged", priv, 0)):
+    rows = x.reshape(-1, x.shape[-1])
+    np.testing.assert_allclose(out.mean[kind][i], rows[:, i].mean(), rtol=1e-4)
+    np.testing.assert_allclose(out.std[kind][i], rows[:, i].std(), rtol=1e-3)
+    np.testing.assert_allclose(out.summed_variance[kind][i], rows[:, i].var() * count,
+                               rtol=1e-3)
+    others = np.arange(x.shape[-1]) != i
+    for field in ("mean", "std", "summed_variance"):
+      np.testing.assert_array_equal(np.asarray(getattr(out, field)[kind])[others],
+                                    np.asarray(getattr(norm, field)[kind])[others])
+  assert int(out.count.to_numpy()) == count
 
 
 # ---------------------------------------------------------------------------------------------
