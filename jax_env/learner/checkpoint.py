@@ -19,11 +19,11 @@ Adam steps).
 
 Normalizer fills: mean 0 and std 1, so a new feature enters unscaled (and meets zero weights).
 `summed_variance` (Welford's running sum) has fill 0. When the learner STARTS a stage from a
-checkpoint (`init_checkpoint`, `stage_start=True`) it keeps the statistics, count included, of
-every feature that varied in the previous stage, so the policy's inputs mean what they meant
-when it was trained. (Rebasing them to a prior worth one iteration, as hifar did before, let
-every mean and std follow the new stage's randomized, pushed data within a few iterations;
-the inputs shifted under the policy and every get-up it had was lost within 10 iterations.)
+checkpoint (`init_checkpoint`; `restore_learner(stage_start=...)`) it keeps the statistics,
+count included, of every feature that varied in the previous stage, so the policy's inputs
+mean what they meant when it was trained. (Rebasing them to a prior worth one iteration, as
+hifar did before, let every mean and std follow the new stage's randomized, pushed data within
+a few iterations; the inputs shifted under the policy and it lost every get-up it had.)
 A feature that never varied (recorded std at most UNSEEN_STD: new in this stage, or constant
 in the previous one, like the domain-randomization factors of a stage without randomization)
 carried no information, so the weights that read it were never trained; they are set to zero
