@@ -264,10 +264,13 @@ def _clipped(x, mean, std):
 def update_normalizer(normalizer, obs: jax.Array, privileged: jax.Array,
                       axis_name: str | None = None):
   """Welford update with every row of obs/privileged ([..., n]), summed over devices."""
-  return running_statistics.update(
-      normalizer, {"obs": obs.reshape(-1, obs.shape[-1]),
-                   "privileged": privileged.reshape(-1, privileged.shape[-1])},
-      pmap_axis_name=axis_name)
+  return running_statistics.update(normalizer, _rows(obs, privileged), pmap_axis_name=axis_name)
+
+
+def _rows(obs: jax.Array, privileged: jax.Array) -> dict:
+  """The normalizer's batch: {"obs", "privileged"} as rows [N, n]."""
+  return {"obs": obs.reshape(-1, obs.shape[-1]),
+          "privileged": privileged.reshape(-1, privileged.shape[-1])}
 
 
 # brax's running_statistics.update bounds every std to these.
@@ -284,10 +287,8 @@ def calibrate_normalizer(normalizer, obs: jax.Array, privileged: jax.Array, mask
   A zero mask changes nothing."""
   count = (jnp.float32(normalizer.count.hi) * jnp.float32(2.0 ** 32)
            + jnp.float32(normalizer.count.lo))
-  batch = {"obs": obs.reshape(-1, obs.shape[-1]),
-           "privileged": privileged.reshape(-1, privileged.shape[-1])}
   mean, std, summed = {}, {}, {}
-  for kind, x in batch.items():
+  for kind, x in _rows(obs, privileged).items():
     m = jnp.mean(x, axis=0)
     sq = jnp.mean(jnp.square(x), axis=0)
     if axis_name is not None:

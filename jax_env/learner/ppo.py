@@ -256,8 +256,14 @@ def ppo_update(state: LearnerState, data: Transition, final_obs, final_privilege
   if cfg.normalize_observations:
     normalizer = nets_lib.update_normalizer(normalizer, data.obs, data.privileged, axis_name)
     if calibrate is not None:
-      normalizer = nets_lib.calibrate_normalizer(normalizer, data.obs, data.privileged,
-                                                 calibrate, axis_name)
+      # Only a stage's first iteration calibrates; every other one skips the batch moments.
+      # The mask is replicated, so every device takes the same branch.
+      wanted = jnp.any(calibrate["obs"] > 0) | jnp.any(calibrate["privileged"] > 0)
+      normalizer = jax.lax.cond(
+          wanted,
+          lambda n: nets_lib.calibrate_normalizer(n, data.obs, data.privileged, calibrate,
+                                                  axis_name),
+          lambda n: n, normalizer)
   new_params = dict(params)
   new_params.update(train_params)
   return state.replace(params=new_params, opt_state=opt_state, learning_rate=lr,

@@ -529,7 +529,10 @@ class _StageRun:
     self.env_state = _put(_shard(env_state, self.n_dev), self.sharding)
     self.history = _put(_shard(history, self.n_dev), self.sharding)
     self.key = key
-    self.calibrate = calibrate
+    # The masks live on the devices: the stage's first PPO iteration gets `calibrate`, every
+    # later one the zero mask (ppo_update then skips the calibration).
+    self.calibrate = _put(_replicate(calibrate, self.n_dev), self.sharding)
+    self.no_calibration = jax.tree_util.tree_map(jnp.zeros_like, self.calibrate)
 
   def run(self) -> dict:
     progress, budgets = self.progress, self.budgets
@@ -576,13 +579,12 @@ class _StageRun:
     # The adaptation module learns under deployment's conditions: no assist.
     force = self.assist_newtons * progress.assist_scale if phase == "ppo" else 0.0
     schedules = jnp.tile(jnp.asarray([scale, force], jnp.float32), (self.n_dev, 1))
-    calibrate = _put(_replicate(self.calibrate, self.n_dev), self.sharding)
     self.learner, self.env_state, self.history, metrics, stats = self.steps[phase](
         self.learner, self.env_state, self.history,
         _put(jax.random.split(k_iter, self.n_dev), self.sharding), _put(schedules, self.sharding),
-        calibrate)
+        self.calibrate)
     if phase == "ppo":  # calibration is once, on the stage's first batch
-      self.calibrate = jax.tree_util.tree_map(np.zeros_like, self.calibrate)
+      self.calibrate = self.no_calibration
     metrics, stats = jax.device_get((_unreplicate(metrics), _unreplicate(stats)))
     dt = time.perf_counter() - t0
     steps = self.budgets.steps_per_iter
