@@ -435,8 +435,10 @@ class _Parser:
     p = ["reward_params"]
     d = self._section(d, "reward_params",
                       ("base_height_target", "base_height_sigma", "hip_roll_ref"),
-                      ("waist_height_target", "dof_pos_ref_band"))
-    return self._all(RewardParams, dict(
+                      ("waist_height_target", "dof_pos_ref_band", "face_down_gate",
+                       "head_down_gate"))
+    gates = {k: self.gravity_gate(d, k, p) for k in ("face_down_gate", "head_down_gate")}
+    params = self._all(RewardParams, dict(
         base_height_target=self.number(d, "base_height_target", p, minimum=0.0, exclusive=True),
         base_height_sigma=self.number(d, "base_height_sigma", p, minimum=0.0, exclusive=True),
         hip_roll_ref=self.number(d, "hip_roll_ref", p),
@@ -444,6 +446,24 @@ class _Parser:
                                         exclusive=True, default=RewardParams.waist_height_target),
         dof_pos_ref_band=self.number(d, "dof_pos_ref_band", p, minimum=0.0,
                                      default=RewardParams.dof_pos_ref_band)))
+    # An absent gate is None (no gate); a gate given but invalid has been reported.
+    if params is None or any(d is not None and k in d and v is None for k, v in gates.items()):
+      return None
+    return dataclasses.replace(params, **gates)
+
+  def gravity_gate(self, d, key, p):
+    """`[full, zero]`: a gate on a Trunk-frame gravity component, which lies in [-1, 1]."""
+    if d is None or key not in d:
+      return None
+    pair = self.pair(d[key], p + [key], ordered=False)
+    if pair is None:
+      return None
+    full, zero = pair
+    if not -1.0 <= full < zero <= 1.0:
+      self.bad_value(p + [key], f"{key} = {_pair(full, zero)}: expected [full, zero] with "
+                     f"-1 <= full < zero <= 1 (gravity components in the Trunk frame)")
+      return None
+    return pair
 
   def reward_shaping(self, d):
     p = ["reward_shaping"]

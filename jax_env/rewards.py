@@ -70,8 +70,26 @@ def survival(x: Quantities, p: RewardParams) -> jax.Array:
   return jnp.ones_like(x.base_height)
 
 
+def _fade(v, full, zero):
+  """1 for v <= full, 0 for v >= zero, linear between."""
+  return jnp.clip((zero - v) / (zero - full), 0.0, 1.0)
+
+
+def _head_down_gate(x: Quantities, p: RewardParams):
+  return 1.0 if p.head_down_gate is None else _fade(x.gravity[:, 2], *p.head_down_gate)
+
+
+def _height_gate(x: Quantities, p: RewardParams):
+  # Heights pay only with the chest off the floor and the Trunk not head-down (the prone trap).
+  gate = _head_down_gate(x, p)
+  if p.face_down_gate is not None:
+    gate = gate * _fade(x.gravity[:, 0], *p.face_down_gate)
+  return gate
+
+
 def base_height(x: Quantities, p: RewardParams) -> jax.Array:
-  return jnp.exp(-p.base_height_sigma * (x.base_height - p.base_height_target) ** 2)
+  return (jnp.exp(-p.base_height_sigma * (x.base_height - p.base_height_target) ** 2)
+          * _height_gate(x, p))
 
 
 def standing(x: Quantities, p: RewardParams) -> jax.Array:
@@ -135,11 +153,11 @@ def _rising_height(h, target):
 
 
 def trunk_height(x: Quantities, p: RewardParams) -> jax.Array:
-  return _rising_height(x.base_height, p.base_height_target)
+  return _rising_height(x.base_height, p.base_height_target) * _height_gate(x, p)
 
 
 def waist_height(x: Quantities, p: RewardParams) -> jax.Array:
-  return _rising_height(x.waist_height, p.waist_height_target)
+  return _rising_height(x.waist_height, p.waist_height_target) * _height_gate(x, p)
 
 
 def upright(x: Quantities, p: RewardParams) -> jax.Array:
@@ -152,7 +170,7 @@ NOT_PRONE_SPAN = 0.5
 
 
 def not_prone(x: Quantities, p: RewardParams) -> jax.Array:
-  return jnp.clip((1.0 - x.gravity[:, 0]) / NOT_PRONE_SPAN, 0.0, 1.0)
+  return jnp.clip((1.0 - x.gravity[:, 0]) / NOT_PRONE_SPAN, 0.0, 1.0) * _head_down_gate(x, p)
 
 
 TERMS = {

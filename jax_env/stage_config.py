@@ -74,6 +74,14 @@ class RewardParams:
   # `dof_pos_ref` applies only within this distance of the target height (0: everywhere);
   # the paper's code pays it only near standing (|h - 0.68| < 0.1).
   dof_pos_ref_band: float = 0.0
+  # Gates on the Trunk-frame gravity, each (full, zero): 1 for g ≤ full, 0 for g ≥ zero, linear
+  # between; None: no gate. `face_down_gate` (on g_x) takes the height terms (base_height,
+  # trunk_height, waist_height) away with the chest towards the floor, so that a face-down
+  # push-up into a head-down kneel is not paid more than lying on the back (the prone trap,
+  # README); `head_down_gate` (on g_z) takes the heights and `not_prone` away with the Trunk
+  # pitched head-down.
+  face_down_gate: tuple[float, float] | None = None
+  head_down_gate: tuple[float, float] | None = None
 
 
 @dataclasses.dataclass(frozen=True)

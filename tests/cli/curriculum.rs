@@ -77,6 +77,7 @@ fn stage_semantics_are_checked_by_python_at_their_lines() {
         ("settle_s = 0.2", "settle_s = 2.0", "settle_s = 2 must be < episode_s = 1"),
         ("hold_s = 0.2", "hold_s = 1.0", "hold_s = 1 must be < episode_s = 1: no episode could ever count as standing"),
         ("interval_s = [2.0, 4.0]", "interval_s = [4.0, 2.0]", "interval_s = [4, 2]: min 4 > max 2"),
+        ("hip_roll_ref = 0.0", "face_down_gate = [0.6, 0.3]\nhip_roll_ref = 0.0", "face_down_gate = [0.6, 0.3]: expected [full, zero] with -1 <= full < zero <= 1"),
         ("min_stand_rate = 0.8", "min_stand_rate = 1.2", "min_stand_rate = 1.2 is out of range; expected >= 0 and <= 1"),
         ("\"Left_Hip_Pitch\", \"Left_Knee_Pitch\"", "\"Left_Hip_Pitch\", \"Left_Hip_Pitch\"", "joint \"Left_Hip_Pitch\" is listed twice in controlled_joints"),
         ("range = [0.0, 0.05]", "range = [0.0, -0.05]", "dof_position.range = [0, -0.05]: gaussian ranges are [mean, std] and std -0.05 must be >= 0"),

@@ -198,6 +198,18 @@ def test_messages_read_like_the_cli_and_say_which_end_is_at_fault():
   assert config._show(3e-5) == "0.00003" and config._show(2.0) == "2"
 
 
+def test_gravity_gates_are_optional_pairs_in_the_gravity_range():
+  d = default_stage_dict("full")
+  assert StageConfig.from_dict(d).reward_params.face_down_gate is None
+  d["reward_params"] |= {"face_down_gate": [0.3, 0.6], "head_down_gate": [0, 0.5]}
+  params = StageConfig.from_dict(d).reward_params
+  assert params.face_down_gate == (0.3, 0.6) and params.head_down_gate == (0.0, 0.5)
+  for bad in ([0.6, 0.3], [0.3, 0.3], [-1.5, 0.5], [0.3], "on"):
+    d["reward_params"]["head_down_gate"] = bad
+    e = _error(d)
+    assert e.path == ("reward_params", "head_down_gate"), bad
+
+
 def test_check_stage_collects_every_error():
   d = default_stage_dict("full")
   d["controlled_joints"].append("Tail")

@@ -5,6 +5,7 @@ involved (fast to run); the full jitted environment is tested in test_env_env.py
 """
 
 import copy
+import dataclasses
 import itertools
 import math
 
@@ -493,6 +494,28 @@ def test_not_prone_rises_from_face_down_and_leaves_the_supine_get_up_alone():
   # A gradient all the way from face down: a small roll already pays.
   rolled = jnp.array([[math.cos(0.2), math.sin(0.2), 0.0]])
   assert float(rewards.not_prone(_quantities(1, gravity=rolled), GETUP_PARAMS)[0]) > 0.03
+
+
+def test_gravity_gates_take_the_heights_away_face_down_and_head_down():
+  # Trunk-frame gravity of: standing, lying supine, ksi_supine_3's forward lean, ksi_prone_3
+  # (hands and knees), lying prone, the head-down kneel of the prone trap, and a half-way lean.
+  g = jnp.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.09], [0.26, 0.0, -0.96], [0.85, 0.0, -0.52],
+                 [1.0, 0.0, -0.07], [0.60, -0.03, 0.80], [0.45, 0.0, -0.89]])
+  x = _quantities(7, gravity=g, base_height=jnp.full(7, 0.4), waist_height=jnp.full(7, 0.3))
+  gated = dataclasses.replace(GETUP_PARAMS, face_down_gate=(0.3, 0.6), head_down_gate=(0.0, 0.5))
+  for term in (rewards.trunk_height, rewards.waist_height, rewards.base_height):
+    plain, value = np.asarray(term(x, GETUP_PARAMS)), np.asarray(term(x, gated))
+    # Lying supine the Trunk tilts slightly head-down (g_z 0.09): 0.82 of the pay.
+    np.testing.assert_allclose(value / plain, [1, 0.82, 1, 0, 0, 0, 0.5], atol=1e-5,
+                               err_msg=str(term))
+  # not_prone keeps its pay face up, loses it head-down (the kneel paid 0.063 a step ungated).
+  np.testing.assert_allclose(np.asarray(rewards.not_prone(x, gated)),
+                             [1.0, 0.82, 1.0, 0.3, 0.0, 0.0, 1.0], atol=1e-5)
+  assert float(rewards.not_prone(x, GETUP_PARAMS)[5]) == pytest.approx(0.8)
+  # Each gate alone: the head-down one leaves the hands-and-knees posture paid.
+  head_only = dataclasses.replace(GETUP_PARAMS, head_down_gate=(0.0, 0.5))
+  np.testing.assert_allclose(np.asarray(rewards.trunk_height(x, head_only))[[3, 5]],
+                             [float(rewards.trunk_height(x, GETUP_PARAMS)[3]), 0.0], atol=1e-6)
 
 
 def test_dof_pos_ref_applies_only_near_the_target_height():

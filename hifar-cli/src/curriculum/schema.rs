@@ -10,7 +10,7 @@
 //! The optional tables `[stage.reward_shaping]`, `[stage.termination]`, `[stage.monitor]`,
 //! `[stage.assist]` (and
 //! the optional keys `reward_params.waist_height_target`, `reward_params.dof_pos_ref_band`,
-//! `ppo.max_action_std`) are typed here only for their keys and types; their ranges and
+//! `reward_params.face_down_gate`, `reward_params.head_down_gate`, `ppo.max_action_std`) are typed here only for their keys and types; their ranges and
 //! meaning are checked by Python (`jax_env/config.py`, `check_stage`), whose key paths
 //! `hifar check` and `hifar train` map back to `FILE:LINE:COL`.
 
@@ -161,6 +161,10 @@ pub struct RewardParams {
     pub waist_height_target: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dof_pos_ref_band: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub face_down_gate: Option<Pair>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub head_down_gate: Option<Pair>,
 }
 
 /// `[stage.reward_shaping]`: how the weighted reward terms are combined (jax_env/config.py
