@@ -98,6 +98,24 @@ def test_kneel_to_crouch_starts_lie_between_the_kneel_and_the_crouch():
   assert np.all(np.asarray(state.control_active) == 1.0)
 
 
+def test_sit_to_crouch_starts_lie_between_sitting_and_the_crouch():
+  env = FallRecoveryEnv(_stage(scenarios={"sit_to_crouch": 1.0}), backend="native")
+  state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(4), 32))
+  assert np.all(np.asarray(state.scenario) == SCENARIOS.index("sit_to_crouch"))
+  qpos = np.asarray(env.backend.view(state.physics).qpos)
+  sit, _ = robot.keyframe(env.mj_model, "ksi_supine_2")
+  crouch, _ = robot.keyframe(env.mj_model, "ksi_supine_3")
+  slack = 5 * env.stage.scenario_params.ksi_joint_noise
+  lo, hi = np.minimum(sit[7:], crouch[7:]) - slack, np.maximum(sit[7:], crouch[7:]) + slack
+  assert np.all((qpos[:, 7:] >= lo) & (qpos[:, 7:] <= hi))
+  # Trunk-frame gravity: sitting leans back (g_x = −sin 0.79), the crouch forward (sin 0.27);
+  # the starts spread over most of the way between.
+  g_x = np.asarray(state.obs[:, 0])
+  assert np.all((g_x > -math.sin(0.79) - 0.05) & (g_x < math.sin(0.27) + 0.05))
+  assert g_x.max() - g_x.min() > 0.5 * (math.sin(0.27) + math.sin(0.79))
+  assert np.all(np.asarray(state.control_active) == 1.0)
+
+
 def test_zero_action_stands_up_from_the_crouch_end_but_not_from_the_kneel():
   """The bridge's premise, in plain C MuJoCo: PD targets at the stand pose (the "default"
   mapping's zero action) raise the T1 from the crouch on its toes, not from `ksi_prone_3`."""
