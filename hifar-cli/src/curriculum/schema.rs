@@ -8,11 +8,11 @@
 //! absent), which is the stage table Python receives.
 //!
 //! The optional tables `[stage.reward_shaping]`, `[stage.termination]`, `[stage.monitor]`,
-//! `[stage.assist]` (and
-//! the optional keys `reward_params.waist_height_target`, `reward_params.dof_pos_ref_band`,
-//! `reward_params.face_down_gate`, `reward_params.head_down_gate`, `ppo.max_action_std`) are typed here only for their keys and types; their ranges and
-//! meaning are checked by Python (`jax_env/config.py`, `check_stage`), whose key paths
-//! `hifar check` and `hifar train` map back to `FILE:LINE:COL`.
+//! `[stage.assist]` (and the optional keys `reward_params.waist_height_target`,
+//! `reward_params.dof_pos_ref_band`, `reward_params.face_down_gate`,
+//! `reward_params.head_down_gate`, `ppo.max_action_std`) are typed here only for their keys and
+//! types; their ranges and meaning are checked by Python (`jax_env/config.py`, `check_stage`),
+//! whose key paths `hifar check` and `hifar train` map back to `FILE:LINE:COL`.
 
 use std::collections::BTreeMap;
 use std::fmt;
