@@ -170,7 +170,7 @@ NOT_PRONE_SPAN = 0.5
 
 
 def not_prone(x: Quantities, p: RewardParams) -> jax.Array:
-  return jnp.clip((1.0 - x.gravity[:, 0]) / NOT_PRONE_SPAN, 0.0, 1.0) * _head_down_gate(x, p)
+  return _fade(x.gravity[:, 0], 1.0 - NOT_PRONE_SPAN, 1.0) * _head_down_gate(x, p)
 
 
 TERMS = {
