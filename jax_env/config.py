@@ -542,7 +542,7 @@ class _Parser:
 
   def monitor(self, d):
     p = ["monitor"]
-    d = self._section(d, "monitor", (), ("every", "episodes", "scenarios"))
+    d = self._section(d, "monitor", (), ("every", "episodes", "scenarios", "keep_best"))
     default = MonitorConfig()
     every = self.number(d, "every", p, minimum=0, integer=True, default=default.every)
     episodes = self.number(d, "episodes", p, minimum=0, exclusive=True, integer=True,
@@ -558,9 +558,15 @@ class _Parser:
           self.err(p + ["scenarios", i], f"unknown scenario {name!r}; {_valid(SCENARIOS)}")
           return None
       scenarios = tuple(v)
+    keep_best = self.boolean(d, "keep_best", p, default.keep_best)
+    if keep_best and every == 0:
+      self.err(p + ["keep_best"], "keep_best needs the monitor on (every > 0): it keeps the "
+               "parameters of the best monitor point")
+      return None
     if every is None or episodes is None:
       return None
-    return MonitorConfig(every=every, episodes=episodes, scenarios=scenarios)
+    return MonitorConfig(every=every, episodes=episodes, scenarios=scenarios,
+                         keep_best=keep_best)
 
   def success(self, d):
     p = ["success"]

@@ -43,7 +43,7 @@ from flax import struct
 from jax_env import features
 from jax_env import rewards as rewards_lib
 from jax_env import robot
-from jax_env.kinematics import Kinematics, rotate_inverse
+from jax_env.kinematics import Kinematics, quat_to_mat, rotate_inverse
 from jax_env.physics import make_backend
 from jax_env.physics.view import PhysicsView
 from jax_env.randomization import (TERRAINS, EpisodeDraw, PushState, Pusher, Randomizer,
@@ -152,6 +152,13 @@ class FallRecoveryEnv:
     self.hip_roll_idx = np.array([j["Left_Hip_Roll"], j["Right_Hip_Roll"]], np.int32)
     self.trunk = int(m.body("Trunk").id)
     self.waist = int(m.body("Waist").id)
+    # The robot's bodies for its centre of mass (nominal masses: a shaping term's estimate) and
+    # the feet for `feet_under_com`.
+    self.com_bodies = np.array(robot.body_ids(m), np.int32)
+    mass = m.body_mass[self.com_bodies]
+    self.com_mass = np.asarray(mass / mass.sum(), np.float32)
+    self.com_ipos = np.asarray(m.body_ipos[self.com_bodies], np.float32)
+    self.feet = np.array([m.body(n).id for n in robot.FOOT_BODIES], np.int32)
     t = stage.termination
     self.low_height_steps = max(int(math.ceil(t.low_height_s / self.ctrl_dt - 1e-9)), 1)
     stand_qpos, _ = robot.keyframe(m, "stand")
@@ -462,4 +469,11 @@ class FallRecoveryEnv:
         torque_limit=jnp.broadcast_to(jnp.asarray(self.real_torque_limit), q.shape),
         range_low=jnp.asarray(self.real_lo), range_high=jnp.asarray(self.real_hi),
         action=action, prev_action=state.last_action, prev_prev_action=state.prev_action,
-        hip_roll=q[:, self.hip_roll_idx], standing=standing)
+        hip_roll=q[:, self.hip_roll_idx], standing=standing,
+        com=self._com(view), feet=view.xpos[:, self.feet])
+
+  def _com(self, view: PhysicsView) -> jax.Array:
+    """[B, 3] the robot's centre of mass: body frames carry their inertial offsets."""
+    rot = quat_to_mat(view.xquat[:, self.com_bodies])
+    centres = view.xpos[:, self.com_bodies] + jnp.einsum("bnij,nj->bni", rot, self.com_ipos)
+    return jnp.einsum("bni,n->bi", centres, self.com_mass)

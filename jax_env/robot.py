@@ -65,6 +65,9 @@ BODY_NAMES: tuple[str, ...] = (
     "right_foot_link",
 )
 
+# The feet (left, right): the support the centre of mass must come over to stand.
+FOOT_BODIES: tuple[str, str] = ("left_foot_link", "right_foot_link")
+
 # Bodies with floor-contact sensors `contact/<body>` (sensor order = this order).
 CONTACT_BODIES: tuple[str, ...] = (
     "Trunk", "H2", "AL3", "left_hand_link", "AR3", "right_hand_link", "Waist",

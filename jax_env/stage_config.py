@@ -147,6 +147,9 @@ class MonitorConfig:
   every: int = 0  # iterations between monitor rollouts; 0: off
   episodes: int = 4  # episodes per start scenario
   scenarios: tuple[str, ...] = ()  # empty: every scenario of the mixture, plus `stand`
+  # The stage ends (adaptation phase, final checkpoint) from the PPO parameters of its monitor
+  # point with the highest mean stand rate (the latest of equals), not from the last iteration.
+  keep_best: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

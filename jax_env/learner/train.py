@@ -467,6 +467,12 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
 PHASES = ("ppo", "adaptation", "done")
 
 
+def is_new_best(best: float | None, rate: float) -> bool:
+  """Whether a monitor point with mean stand rate `rate` replaces the best so far: the first
+  does, and a later one that is at least as good (of equals, the more trained policy)."""
+  return best is None or rate >= best
+
+
 @dataclasses.dataclass
 class Progress:
   """Where a stage's training stands: the `learner` section of every checkpoint.json (with the
@@ -479,6 +485,10 @@ class Progress:
   finished_early: bool = False  # the callback answered "finish" during PPO
   penalty_scale: float = 1.0  # the penalty schedule's scale for the next PPO rollout
   assist_scale: float = 1.0  # the assist schedule's scale for the next PPO rollout
+  # The best monitor point so far ([stage.monitor] keep_best): its mean stand rate and the env
+  # steps of the checkpoint written there.
+  best_monitor_rate: float | None = None
+  best_monitor_env_steps: int | None = None
 
   @property
   def env_steps(self) -> int:
@@ -533,6 +543,8 @@ class _StageRun:
     # later one the zero mask (ppo_update then skips the calibration).
     self.calibrate = _put(_replicate(calibrate, self.n_dev), self.sharding)
     self.no_calibration = jax.tree_util.tree_map(jnp.zeros_like, self.calibrate)
+    # A new best monitor point is checkpointed at once (keep_best returns to it).
+    self.best_unsaved = False
 
   def run(self) -> dict:
     progress, budgets = self.progress, self.budgets
@@ -547,8 +559,9 @@ class _StageRun:
           self.log(f"stage {self.config.stage_name}: finish requested at {progress.env_steps} "
                    "env steps")
           break
-        if progress.iteration % every == 0:
+        if progress.iteration % every == 0 or self.best_unsaved:
           self.save()
+      self.keep_best()
       progress.phase = "adaptation" if budgets.adaptation > 0 else "done"
       if progress.phase == "adaptation":
         self.save()  # the phase boundary: a resume must not re-enter PPO
@@ -605,6 +618,11 @@ class _StageRun:
                                                          config.monitor.every, last):
         host = _unreplicate(self.learner)
         report["monitor"] = self.monitor(host.params, host.normalizer)
+        if config.monitor.keep_best and is_new_best(progress.best_monitor_rate,
+                                                    report["monitor"]["mean_stand_rate"]):
+          progress.best_monitor_rate = report["monitor"]["mean_stand_rate"]
+          progress.best_monitor_env_steps = progress.ppo_env_steps
+          self.best_unsaved = True
     bad = sorted(k for k, v in report["losses"].items() if not math.isfinite(v))
     if bad:
       # The parameters are poisoned from here on: stop rather than checkpoint garbage.
@@ -618,8 +636,29 @@ class _StageRun:
       raise ValueError(f"progress callback answered {answer!r}; valid: {', '.join(ANSWERS)}")
     return answer
 
+  def keep_best(self) -> None:
+    """At the end of PPO with [stage.monitor] keep_best: the learner goes back to the state
+    checkpointed at the best monitor point, so the adaptation phase and the final checkpoint
+    build on the policy that stood best rather than on the last iteration's."""
+    progress = self.progress
+    if progress.best_monitor_env_steps is None:  # keep_best off, or no monitor point yet
+      return
+    if progress.best_monitor_env_steps == progress.ppo_env_steps:
+      self.log(f"stage {self.config.stage_name}: the last PPO iteration is the best monitor "
+               f"point (mean stand rate {progress.best_monitor_rate:.3f}); kept")
+      return
+    directory = self.checkpoints_dir / f"{progress.best_monitor_env_steps:012d}"
+    best = ckpt_lib.load(directory)
+    host = jax.device_get(_unreplicate(self.learner))
+    restored = ckpt_lib.restore_learner(host, best.tensors, fresh_optimizer=False)
+    self.learner = _put(_replicate(restored, self.n_dev), self.sharding)
+    self.log(f"stage {self.config.stage_name}: keeping the PPO parameters of {directory} (mean "
+             f"monitor stand rate {progress.best_monitor_rate:.3f}, the best of the stage) "
+             f"instead of those at {progress.ppo_env_steps} env steps")
+
   def save(self) -> Path:
     """A checkpoint of everything an exact resume needs; returns its directory."""
+    self.best_unsaved = False
     progress, config, p = self.progress, self.config, self.config.ppo
     steps = progress.env_steps
     host_learner = jax.device_get(_unreplicate(self.learner))

@@ -8,6 +8,7 @@ import copy
 import dataclasses
 import itertools
 import math
+import types
 
 import jax
 import jax.numpy as jnp
@@ -417,7 +418,8 @@ def _quantities(batch=2, **kw):
       range_low=jnp.full(nj, -1.0), range_high=jnp.full(nj, 1.0),
       action=jnp.zeros((batch, na)), prev_action=jnp.zeros((batch, na)),
       prev_prev_action=jnp.zeros((batch, na)), hip_roll=jnp.zeros((batch, 2)),
-      standing=jnp.zeros((batch,), bool))
+      standing=jnp.zeros((batch,), bool), com=jnp.tile(jnp.array([0.0, 0.0, 0.58]), (batch, 1)),
+      feet=jnp.tile(jnp.array([[0.0, 0.1, 0.03], [0.0, -0.1, 0.03]]), (batch, 1, 1)))
   base.update(kw)
   return rewards.Quantities(**base)
 
@@ -460,6 +462,44 @@ GETUP_PARAMS = config.RewardParams(base_height_target=0.67, base_height_sigma=10
                              waist_height_target=0.55, dof_pos_ref_band=0.1)
 
 
+
+
+def test_feet_under_com_pays_the_centre_of_mass_over_feet_on_the_floor():
+  feet = jnp.array([[0.3, 0.1, 0.03], [0.3, -0.1, 0.03]])
+  com = jnp.array([[0.3, 0.0, 0.5], [0.1, 0.0, 0.3], [0.3, 0.0, 0.5], [0.3, 0.0, 0.5]])
+  raised = feet.at[0, 2].set(0.25)  # the left foot in the air
+  x = _quantities(4, com=com, feet=jnp.stack([feet, feet, raised, feet.at[0, 1].set(0.0)]))
+  out = np.asarray(rewards.feet_under_com(x, GETUP_PARAMS))
+  sigma = rewards.FEET_UNDER_COM_SIGMA
+  # over the feet; 0.2 m behind them (sitting); a foot off the floor; the midpoint of the feet
+  # (0.3, -0.05), the left foot moved in, is 0.05 m from the centre of mass
+  np.testing.assert_allclose(out, [1.0, math.exp(-(0.2 / sigma) ** 2), 0.0,
+                                   math.exp(-(0.05 / sigma) ** 2)], rtol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def native_env_for_com():
+  from jax_env.env import FallRecoveryEnv
+  return FallRecoveryEnv(default_stage_dict("planar"), backend="native")
+
+
+def test_centre_of_mass_and_feet_of_the_key_states(native_env_for_com):
+  # The env's centre of mass is MuJoCo's (subtree_com of the Trunk), and the term orders the
+  # supine key states from lying to the crouch to standing.
+  import mujoco
+  env = native_env_for_com
+  m = env.mj_model
+  d = mujoco.MjData(m)
+  paid = []
+  for name in ("ksi_supine_1", "ksi_supine_2", "ksi_supine_3", "stand"):
+    mujoco.mj_resetDataKeyframe(m, d, m.key(name).id)
+    mujoco.mj_forward(m, d)
+    view = types.SimpleNamespace(xpos=jnp.asarray(d.xpos)[None], xquat=jnp.asarray(d.xquat)[None])
+    com = np.asarray(env._com(view))[0]
+    np.testing.assert_allclose(com, d.subtree_com[env.trunk], atol=1e-5)
+    x = _quantities(1, com=jnp.asarray(com)[None], feet=jnp.asarray(d.xpos[env.feet])[None])
+    paid.append(float(rewards.feet_under_com(x, GETUP_PARAMS)[0]))
+  assert paid == sorted(paid) and paid[0] < 0.1 and paid[-1] > 0.95, paid
 
 
 def test_height_terms_rise_from_the_floor_and_saturate_at_the_target():

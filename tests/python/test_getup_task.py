@@ -315,6 +315,18 @@ def test_new_sections_are_validated_with_key_paths():
                           ("monitor", "scenarios", 1)])
 
 
+def test_keep_best_needs_the_monitor_on_and_a_boolean():
+  d = default_stage_dict("planar")
+  d["monitor"] = {"every": 0, "keep_best": True}
+  assert config.check_stage(d) == [{"path": ["monitor", "keep_best"], "message":
+                                    "keep_best needs the monitor on (every > 0): it keeps the "
+                                    "parameters of the best monitor point", "at": "key"}]
+  d["monitor"] = {"every": 5, "keep_best": "yes"}
+  assert [e["path"] for e in config.check_stage(d)] == [["monitor", "keep_best"]]
+  d["monitor"] = {"every": 5, "keep_best": True}
+  assert config.StageConfig.from_dict(d).monitor.keep_best is True
+
+
 # -- the deterministic monitor ------------------------------------------------------------------
 
 

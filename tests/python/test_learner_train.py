@@ -221,3 +221,48 @@ def test_u64_seeds_keep_every_bit():
   assert train.seed_key(2**64 - 1).tolist() == [2**32 - 1, 2**32 - 1]
   with pytest.raises(ValueError, match="not a u64"):
     train.seed_key(-1)
+
+
+def test_keep_best_ends_the_stage_from_the_best_monitor_point(tmp_path, monkeypatch):
+  # [stage.monitor] keep_best: the adaptation phase and the final checkpoint build on the PPO
+  # parameters of the monitor point with the best mean stand rate, the latest of equals. The
+  # toy task has no MuJoCo scene for the real monitor (tested on a held `stand` in
+  # test_getup_task.py), so the monitor's readings are scripted here: 0.2, 0.6, 0.6, 0.1.
+  from jax_env import config as config_lib
+  readings = iter([0.2, 0.6, 0.6, 0.1])
+
+  def scripted_monitor(*_args):
+    def monitor(params, normalizer):
+      rate = next(readings)
+      return {"stand_rate": {"stand": rate}, "recovery_time": {"stand": None},
+              "max_height": {"stand": 0.0}, "mean_stand_rate": rate}
+    return monitor
+
+  monkeypatch.setattr(train.monitor_lib, "make_monitor", scripted_monitor)
+
+  def run(name, keep_best):
+    cfg = learner_config(env_steps=4 * ITER_STEPS, rma={"adaptation_env_steps": 2 * ITER_STEPS})
+    cfg = cfg.__class__(**{**cfg.__dict__, "monitor": config_lib.MonitorConfig(
+        every=1, episodes=1, scenarios=("stand",), keep_best=keep_best)})
+    return train.train_stage(ToyStandUpEnv(), cfg, stage_dir=tmp_path / name, seed=0,
+                             log_file=tmp_path / f"{name}.log")
+
+  result = run("best", keep_best=True)
+  best_dir = tmp_path / "best" / "checkpoints" / f"{3 * ITER_STEPS:012d}"
+  assert best_dir.is_dir()  # checkpointed when it became the best (checkpoint_every is 1000)
+  final, best = _params(result["checkpoint"]), _params(best_dir)
+  learned_by_ppo = [k for k in final if k.startswith(("policy/", "value/"))]
+  assert learned_by_ppo and all(np.array_equal(final[k], best[k]) for k in learned_by_ppo)
+  meta = ckpt_lib.read_meta(result["checkpoint"])["learner"]
+  assert (meta["best_monitor_rate"], meta["best_monitor_env_steps"]) == (0.6, 3 * ITER_STEPS)
+  assert "keeping the PPO parameters of" in (tmp_path / "best.log").read_text()
+
+  readings = iter([0.2, 0.6, 0.6, 0.1])
+  last = _params(run("last", keep_best=False)["checkpoint"])
+  assert not all(np.array_equal(last[k], final[k]) for k in learned_by_ppo)
+
+
+def test_a_new_best_monitor_point_is_at_least_as_good_as_the_best_so_far():
+  assert train.is_new_best(None, 0.0)
+  assert train.is_new_best(0.5, 0.5)  # the latest of equals: the more trained policy
+  assert not train.is_new_best(0.5, 0.25)

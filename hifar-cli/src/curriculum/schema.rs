@@ -241,6 +241,8 @@ pub struct Monitor {
     pub episodes: Option<u32>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub scenarios: Option<Vec<Scenario>>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub keep_best: Option<bool>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
