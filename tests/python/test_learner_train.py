@@ -228,10 +228,13 @@ def test_keep_best_ends_the_stage_from_the_best_monitor_point(tmp_path, monkeypa
   # parameters of the monitor point with the best mean stand rate, the latest of equals. The
   # toy task has no MuJoCo scene for the real monitor (tested on a held `stand` in
   # test_getup_task.py), so the monitor's readings are scripted here: 0.2, 0.6, 0.6, 0.1.
-  from jax_env import config as config_lib
-  readings = iter([0.2, 0.6, 0.6, 0.1])
+  import dataclasses
 
-  def scripted_monitor(*_args):
+  from jax_env import config as config_lib
+
+  def scripted_monitor(*_args):  # one per stage, as make_monitor
+    readings = iter([0.2, 0.6, 0.6, 0.1])
+
     def monitor(params, normalizer):
       rate = next(readings)
       return {"stand_rate": {"stand": rate}, "recovery_time": {"stand": None},
@@ -242,8 +245,8 @@ def test_keep_best_ends_the_stage_from_the_best_monitor_point(tmp_path, monkeypa
 
   def run(name, keep_best):
     cfg = learner_config(env_steps=4 * ITER_STEPS, rma={"adaptation_env_steps": 2 * ITER_STEPS})
-    cfg = cfg.__class__(**{**cfg.__dict__, "monitor": config_lib.MonitorConfig(
-        every=1, episodes=1, scenarios=("stand",), keep_best=keep_best)})
+    cfg = dataclasses.replace(cfg, monitor=config_lib.MonitorConfig(
+        every=1, episodes=1, scenarios=("stand",), keep_best=keep_best))
     return train.train_stage(ToyStandUpEnv(), cfg, stage_dir=tmp_path / name, seed=0,
                              log_file=tmp_path / f"{name}.log")
 
@@ -257,7 +260,6 @@ def test_keep_best_ends_the_stage_from_the_best_monitor_point(tmp_path, monkeypa
   assert (meta["best_monitor_rate"], meta["best_monitor_env_steps"]) == (0.6, 3 * ITER_STEPS)
   assert "keeping the PPO parameters of" in (tmp_path / "best.log").read_text()
 
-  readings = iter([0.2, 0.6, 0.6, 0.1])
   last = _params(run("last", keep_best=False)["checkpoint"])
   assert not all(np.array_equal(last[k], final[k]) for k in learned_by_ppo)
 
