@@ -656,7 +656,7 @@ class _Parser:
     unit = ("discount", "gae_lambda")
     d = self._section(d, "ppo", ints + pos + nonneg + unit + (
         "lr_schedule", "normalize_observations", "policy_hidden", "value_hidden", "activation"),
-        ("max_action_std",))
+        ("max_action_std", "action_noise_correlation"))
     v = {k: self.number(d, k, p, minimum=0, exclusive=True, integer=True) for k in ints}
     if v["num_envs"] is not None and v["num_minibatches"] is not None:
       if v["num_envs"] % v["num_minibatches"]:
@@ -673,6 +673,14 @@ class _Parser:
              value_hidden=self.int_list(d, "value_hidden", p),
              activation=self.choice(d, "activation", p, ACTIVATIONS))
     ppo = self._all(PPOConfig, v)
+    if ppo is not None and d is not None and "action_noise_correlation" in d:
+      # ρ = 1 would freeze the noise for a whole rollout: a fixed offset, not exploration.
+      rho = self.number(d, "action_noise_correlation", p, minimum=0.0, maximum=1.0)
+      if rho is not None and rho >= 1.0:
+        self.err(p + ["action_noise_correlation"],
+                 f"action_noise_correlation {rho!r} must be below 1")
+        rho = None
+      ppo = None if rho is None else dataclasses.replace(ppo, action_noise_correlation=rho)
     if ppo is None or d is None or "max_action_std" not in d:
       return ppo
     bound = self.number(d, "max_action_std", p, minimum=0.0, exclusive=True)

@@ -215,6 +215,8 @@ class PPOConfig:
   initial_action_std: float
   checkpoint_every: int
   max_action_std: float | None = None  # the policy's std is kept at or below this
+  # ρ of the AR(1) exploration noise per control step (0: white noise, brax's sampling).
+  action_noise_correlation: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

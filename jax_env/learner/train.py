@@ -270,6 +270,27 @@ def _with_schedules(env, env_state, schedules):
   return env_state
 
 
+def correlated_noise(previous: jax.Array, key: jax.Array, rho: float) -> jax.Array:
+  """This step's standard-normal exploration noise: AR(1), ρ·ε + √(1−ρ²)·ξ with ξ drawn from
+  `key`, so that every step's noise is still N(0, 1) (the PPO ratio reads the same Gaussian)
+  while it stays correlated for about 1/(1−ρ) control steps. ρ = 0 is brax's white noise, ξ
+  itself. Correlated action noise explores the slow whole-body moves of a get-up, which white
+  noise at 50 Hz averages away in the PD loop (Hollenstein et al., "Colored Noise in PPO",
+  AAAI 2024; Raffin et al.'s gSDE). The noise starts afresh at every iteration, so the rollout
+  state (and exact resume) carries none of it."""
+  xi = jax.random.normal(key, previous.shape)
+  if rho == 0.0:
+    return xi
+  return rho * previous + math.sqrt(1.0 - rho * rho) * xi
+
+
+def restart_noise(noise: jax.Array, key: jax.Array, done: jax.Array) -> jax.Array:
+  """The noise with a stationary fresh draw where an episode ended: a new episode does not
+  inherit the last one's direction of exploration."""
+  fresh = jax.random.normal(jax.random.fold_in(key, 1), noise.shape)
+  return jnp.where(done[:, None] > 0, fresh, noise)
+
+
 def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devices):
   ppo_cfg = config.ppo
   unroll = ppo_cfg.unroll_length
@@ -284,21 +305,30 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
     params, normalizer = learner.params, learner.normalizer
     log_std = params["policy"]["log_std"]
     dist = nets.action_distribution
+    rho = ppo_cfg.action_noise_correlation
+    # The noise before the first step: stationary, from a key of its own (fold_in leaves the
+    # steps' keys, and with ρ = 0 every sampled action, as they were).
+    noise = jax.random.normal(jax.random.fold_in(k_roll, 1),
+                              (env_state.obs.shape[0], nets.config.action_size))
 
     def step(carry, k):
-      es, hist = carry
+      es, hist, noise = carry
       loc = nets_lib.privileged_mean(nets, params, normalizer, es.obs, es.privileged)
       std = jnp.broadcast_to(jnp.exp(log_std), loc.shape)
-      action = loc + std * jax.random.normal(k, loc.shape)
+      noise = correlated_noise(noise, k, rho)
+      action = loc + std * noise
       log_prob = dist.log_prob((loc, std), action)
       nxt = env.step(es, action)
       tr = ppo_lib.Transition(obs=es.obs, privileged=es.privileged, action=action, loc=loc,
                               log_prob=log_prob, reward=nxt.reward, done=nxt.done,
                               truncation=nxt.truncation, active=es.control_active)
-      return (nxt, nets_lib.push_history(hist, es.obs, nxt.done)), (tr, _step_stats(nxt))
+      if rho:
+        noise = restart_noise(noise, k, nxt.done)
+      return ((nxt, nets_lib.push_history(hist, es.obs, nxt.done), noise),
+              (tr, _step_stats(nxt)))
 
-    (env_state, history), (data, stats) = jax.lax.scan(
-        step, (env_state, history), jax.random.split(k_roll, unroll))
+    (env_state, history, _), (data, stats) = jax.lax.scan(
+        step, (env_state, history, noise), jax.random.split(k_roll, unroll))
     learner, metrics = ppo_lib.ppo_update(
         learner, data, env_state.obs, env_state.privileged, k_update, nets=nets, cfg=ppo_cfg,
         mirror_weight=config.mirror_weight, maps=maps, calibrate=calibrate, axis_name=AXIS)

@@ -10,7 +10,7 @@
 //! The optional tables `[stage.reward_shaping]`, `[stage.termination]`, `[stage.monitor]`,
 //! `[stage.assist]` (and the optional keys `reward_params.waist_height_target`,
 //! `reward_params.dof_pos_ref_band`, `reward_params.face_down_gate`,
-//! `reward_params.head_down_gate`, `ppo.max_action_std`) are typed here only for their keys and
+//! `reward_params.head_down_gate`, `ppo.max_action_std`, `ppo.action_noise_correlation`) are typed here only for their keys and
 //! types; their ranges and meaning are checked by Python (`jax_env/config.py`, `check_stage`),
 //! whose key paths `hifar check` and `hifar train` map back to `FILE:LINE:COL`.
 
@@ -423,6 +423,8 @@ pub struct Ppo {
     pub checkpoint_every: u32,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_action_std: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub action_noise_correlation: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
