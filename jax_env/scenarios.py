@@ -32,6 +32,15 @@ them came (for the whole supine family at once) after 8–10M env steps in 2 of 
 by 11M in the other two. Measured with 10% of cpu.toml's stage-1 starts (seed 1): the policy
 rose from the crouch half of the line from 2.5M env steps on and never from the sitting half
 (README); like `kneel_to_crouch`, available but unused by the shipped curricula.
+
+`rock_back` (ours) is a key state of the supine get-up that the policies which learned it
+actually pass through: rocked back onto the shoulders, Trunk tilted head-down (pitched 2.4 rad
+back from upright: gravity in the Trunk frame ≈ (−0.68, 0, 0.74)), knees tucked (2.0), hips at
+their extension limit (1.55), shoulders swung back (−1.8), at rest. Traced in plain MuJoCo, such
+a policy (cpu.toml with hifar.toml's stage-1 extension, seed 1) goes through this posture 0.6–
+0.7 s after leaving `ksi_supine_2` or `ksi_supine_1` and swings forward onto its feet; from the
+static posture it stands up within 0.6 s (6 of 6, with joint noise), a zero action does not
+(Trunk ≤ 0.43 m), and a policy without the get-up falls flat instead of tucking (README).
 """
 
 from __future__ import annotations
@@ -56,7 +65,7 @@ KSI_SCENARIOS: tuple[str, ...] = ("ksi_prone_1", "ksi_prone_2", "ksi_prone_3", "
 # (an episode's scenario is an index into it).
 SCENARIOS: tuple[str, ...] = KSI_SCENARIOS + ("supine", "prone", "lateral", "sitting",
                                               "crossed_legs", "random_drop", "stand", "squat",
-                                              "kneel_to_crouch", "sit_to_crouch")
+                                              "kneel_to_crouch", "sit_to_crouch", "rock_back")
 
 # Scenarios whose initial pose is not a resting pose: their episodes start with settling.
 SETTLING_SCENARIOS = frozenset({"lateral", "sitting", "crossed_legs", "random_drop"})
@@ -74,6 +83,11 @@ SQUAT_PITCH = 0.24
 TOE_CROUCH = {"Hip_Pitch": -1.7, "Knee_Pitch": 2.3, "Ankle_Pitch": -0.2, "Shoulder_Pitch": 0.0,
               "Elbow_Yaw": -0.3}
 TOE_CROUCH_PITCH = 0.25
+# `rock_back`: its joints (left side; the rest at `stand`) and Trunk pitch (negative: backwards;
+# −π/2 lies flat on the back), rounded from the traced get-up (docstring above).
+ROCK_BACK = {"Hip_Pitch": 1.55, "Knee_Pitch": 2.0, "Ankle_Pitch": -0.9, "Shoulder_Pitch": -1.8,
+             "Elbow_Yaw": 0.0}
+ROCK_BACK_PITCH = -2.4
 
 
 # Reverse-curriculum bridges: a start drawn uniformly between two ends (keyframes, or the toe
@@ -83,13 +97,18 @@ BRIDGES = {"kneel_to_crouch": ("ksi_prone_3", "toe_crouch"),
            "sit_to_crouch": ("ksi_supine_2", "ksi_supine_3")}
 
 
-def toe_crouch_joints(stand: np.ndarray) -> np.ndarray:
-  """The 23 joints of the crouch end of `kneel_to_crouch`: `stand` with TOE_CROUCH set on the
-  left side and mirrored onto the right (roll and yaw joints change sign)."""
+def symmetric_posture(stand: np.ndarray, left: dict[str, float]) -> np.ndarray:
+  """The 23 joints of a symmetric posture: `stand` with the `left` joint values (names without
+  the side prefix) set on the left side and mirrored onto the right (roll and yaw change sign)."""
   q = np.array(stand, np.float32)
-  for joint, value in TOE_CROUCH.items():
+  for joint, value in left.items():
     q[robot.JOINT_NAMES.index(f"Left_{joint}")] = value
   return robot.mirror_left_to_right(q)
+
+
+def toe_crouch_joints(stand: np.ndarray) -> np.ndarray:
+  """The 23 joints of the crouch end of `kneel_to_crouch`."""
+  return symmetric_posture(stand, TOE_CROUCH)
 
 
 # With an obstacle, the legs start spread by this hip roll so the ball fits between them.
@@ -232,6 +251,14 @@ class ScenarioSampler:
         q = q + self.noise * z.normal
         return _Pose(self._clip(q), axis_angle_quat(_Y, SQUAT_PITCH), rest)
       return squat
+
+    if family == "rock_back":
+      rock = jnp.asarray(symmetric_posture(self.stand, ROCK_BACK))
+
+      def rock_back(z, scenario):
+        return _Pose(self._clip(rock + self.noise * z.normal),
+                     axis_angle_quat(_Y, ROCK_BACK_PITCH), rest)
+      return rock_back
 
     if family in BRIDGES:
       # A posture drawn uniformly on the straight line (joints and Trunk pitch) between two ends.

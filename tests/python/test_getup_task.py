@@ -23,8 +23,8 @@ from jax_env.learner import monitor as monitor_lib
 from jax_env.learner import networks as nets_lib
 from jax_env.learner import ppo as ppo_lib
 from jax_env.learner import train as train_lib
-from jax_env.scenarios import (REST_CLEARANCE, SQUAT, SQUAT_PITCH, TOE_CROUCH, TOE_CROUCH_PITCH,
-                               toe_crouch_joints)
+from jax_env.scenarios import (REST_CLEARANCE, ROCK_BACK, ROCK_BACK_PITCH, SQUAT, SQUAT_PITCH,
+                               TOE_CROUCH, TOE_CROUCH_PITCH, toe_crouch_joints)
 
 B = 4
 
@@ -113,6 +113,25 @@ def test_sit_to_crouch_starts_lie_between_sitting_and_the_crouch():
   g_x = np.asarray(state.obs[:, 0])
   assert np.all((g_x > -math.sin(0.79) - 0.05) & (g_x < math.sin(0.27) + 0.05))
   assert g_x.max() - g_x.min() > 0.5 * (math.sin(0.27) + math.sin(0.79))
+  assert np.all(np.asarray(state.control_active) == 1.0)
+
+
+def test_rock_back_starts_rocked_onto_the_shoulders_head_down():
+  env = FallRecoveryEnv(_stage(scenarios={"rock_back": 1.0}), backend="native")
+  state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(5), 16))
+  assert np.all(np.asarray(state.scenario) == SCENARIOS.index("rock_back"))
+  qpos = np.asarray(env.backend.view(state.physics).qpos)
+  j = {name: 7 + i for i, name in enumerate(robot.JOINT_NAMES)}
+  slack = 5 * env.stage.scenario_params.ksi_joint_noise
+  for joint, value in ROCK_BACK.items():  # pitch joints, and an elbow yaw of 0: both sides alike
+    for side in ("Left", "Right"):
+      assert np.all(np.abs(qpos[:, j[f"{side}_{joint}"]] - value) <= slack), (side, joint)
+  # Trunk-frame gravity of a Trunk pitched ROCK_BACK_PITCH: chest up (g_x < 0), head down
+  # (g_z > 0); lying flat on the back would read (−1, 0, 0).
+  g = np.asarray(state.obs[:, :3])
+  assert np.allclose(g[:, 0], math.sin(ROCK_BACK_PITCH), atol=0.02)
+  assert np.allclose(g[:, 2], -math.cos(ROCK_BACK_PITCH), atol=0.02)
+  assert np.all(qpos[:, 2] > 0.2)  # on the shoulders with the hips up, not lying flat
   assert np.all(np.asarray(state.control_active) == 1.0)
 
 
