@@ -41,9 +41,8 @@ a policy (cpu.toml with hifar.toml's stage-1 extension, seed 1) goes through thi
 0.7 s after leaving `ksi_supine_2` or `ksi_supine_1` and swings forward onto its feet; from the
 static posture it stands up within 0.6 s (6 of 6, with joint noise), a zero action does not
 (Trunk ≤ 0.43 m), and a policy without the get-up falls flat instead of tucking (README).
-Measured at 10% of cpu.toml's stage-1 starts (seed 1): the policy never rose from it in 11M env
-steps and learned to hold a head-down shoulder stand from it instead (README); available but
-unused by the shipped curricula.
+As a stage-1 start it did not teach the get-up (README, "A supine trap"); unused by the
+shipped curricula.
 """
 
 from __future__ import annotations
