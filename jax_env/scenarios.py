@@ -43,6 +43,15 @@ static posture it stands up within 0.6 s (6 of 6, with joint noise), a zero acti
 (Trunk ≤ 0.43 m), and a policy without the get-up falls flat instead of tucking (README).
 As a stage-1 start it did not teach the get-up (README, "A supine trap"); unused by the
 shipped curricula.
+
+`supine_path` (ours) is reference state initialisation on that motion: a state drawn uniformly
+in time from the rise of the stored supine get-up path (`jax_env.getup_paths`: open-loop PD
+targets found by a cross-entropy search in C MuJoCo), with its joint angles (plus the key-state
+joint noise), Trunk orientation and every velocity, placed at the height its lowest point had
+there — states with the momentum of the rock that a static key state such as `rock_back` lacks.
+`prone_path` does the same on the stored prone path: a roll from lying prone onto the back with
+stage 2's joints (hip roll included), then the supine get-up — for stage 2, whose prone get-up
+rolls onto the back.
 """
 
 from __future__ import annotations
@@ -55,7 +64,7 @@ import mujoco
 import numpy as np
 from flax import struct
 
-from jax_env import kinematics, robot
+from jax_env import getup_paths, kinematics, robot
 from jax_env.kinematics import axis_angle_quat, quat_mul
 from jax_env.randomization import OBSTACLE_PARK, EpisodeDraw, Randomizer
 from jax_env.stage_config import StageConfig
@@ -67,7 +76,8 @@ KSI_SCENARIOS: tuple[str, ...] = ("ksi_prone_1", "ksi_prone_2", "ksi_prone_3", "
 # (an episode's scenario is an index into it).
 SCENARIOS: tuple[str, ...] = KSI_SCENARIOS + ("supine", "prone", "lateral", "sitting",
                                               "crossed_legs", "random_drop", "stand", "squat",
-                                              "kneel_to_crouch", "sit_to_crouch", "rock_back")
+                                              "kneel_to_crouch", "sit_to_crouch", "rock_back",
+                                              "supine_path", "prone_path")
 
 # Scenarios whose initial pose is not a resting pose: their episodes start with settling.
 SETTLING_SCENARIOS = frozenset({"lateral", "sitting", "crossed_legs", "random_drop"})
@@ -90,6 +100,11 @@ TOE_CROUCH_PITCH = 0.25
 ROCK_BACK = {"Hip_Pitch": 1.55, "Knee_Pitch": 2.0, "Ankle_Pitch": -0.9, "Shoulder_Pitch": -1.8,
              "Elbow_Yaw": 0.0}
 ROCK_BACK_PITCH = -2.4
+
+
+# Reference state initialisation: the scenario drawing from each stored get-up path
+# (`jax_env.getup_paths`).
+PATH_SCENARIOS = {"supine_path": "supine", "prone_path": "prone"}
 
 
 # Reverse-curriculum bridges: a start drawn uniformly between two ends (keyframes, or the toe
@@ -146,6 +161,7 @@ class _Pose:
   joints: jax.Array  # [23]
   quat: jax.Array  # [4] before the random heading
   clearance: jax.Array  # []
+  qvel: jax.Array | None = None  # [nv] before the random heading; None: at rest
 
 
 class ScenarioSampler:
@@ -181,7 +197,7 @@ class ScenarioSampler:
     families = [self._family(s) for s in SCENARIOS]
     unique = list(dict.fromkeys(families))
     self._branch = np.array([unique.index(f) for f in families], np.int32)
-    self._poses = [self._pose_fn(f) for f in unique]
+    self._poses = [self._with_velocity(self._pose_fn(f)) for f in unique]
 
   # -- poses (one env, before heading, DR and placement) ----------------------------------------
 
@@ -204,7 +220,17 @@ class ScenarioSampler:
       return "keyframe"
     if scenario in ("supine", "prone"):
       return "lying"
+    if scenario in PATH_SCENARIOS:
+      return "path"
     return scenario
+
+  def _with_velocity(self, pose_fn):
+    """`pose_fn` with the zero velocity of a start at rest filled in, so that every branch of
+    the `lax.switch` returns the same structure."""
+    def pose(z, scenario):
+      p = pose_fn(z, scenario)
+      return p if p.qvel is not None else p.replace(qvel=jnp.zeros(self.nv))
+    return pose
 
   def _pose_fn(self, family: str):
     """The pose sampler of one pose family: (`_Noise`, scenario index) -> `_Pose`.
@@ -261,6 +287,37 @@ class ScenarioSampler:
         return _Pose(self._clip(rock + self.noise * z.normal),
                      axis_angle_quat(_Y, ROCK_BACK_PITCH), rest)
       return rock_back
+
+    if family == "path":
+      # A state drawn uniformly (in time) from the rise of a stored get-up path, before its
+      # standing streak starts: joints (plus the key-state noise), Trunk orientation and every
+      # velocity as simulated, at the height its lowest point had there. The rises of all
+      # paths are rows of one table; a scenario reads its own rows.
+      stored = getup_paths.load()
+      missing = sorted(set(PATH_SCENARIOS.values()) - set(stored))
+      if missing:
+        raise ValueError(f"{getup_paths.PATHS_FILE} holds no {', '.join(missing)} path; "
+                         "regenerate it with `python -m jax_env.getup_paths`")
+      rises = {name: stored[name].stand_index for name in PATH_SCENARIOS.values()}
+      first = np.zeros(len(SCENARIOS), np.int32)
+      count = np.ones(len(SCENARIOS), np.int32)
+      offset = 0
+      for scenario_name, path_name in PATH_SCENARIOS.items():
+        first[SCENARIOS.index(scenario_name)] = offset
+        count[SCENARIOS.index(scenario_name)] = rises[path_name]
+        offset += rises[path_name]
+      qpos = jnp.asarray(np.concatenate([stored[n].qpos[:rises[n]] for n in rises]), jnp.float32)
+      qvel = jnp.asarray(np.concatenate([stored[n].qvel[:rises[n]] for n in rises]), jnp.float32)
+      lowest = jax.vmap(lambda q: jnp.min(self.kin.geom_lowest_of(*self.kin.bodies(q))))(qpos)
+      clearance = jnp.maximum(lowest, rest)
+      first, count = jnp.asarray(first), jnp.asarray(count)
+
+      def on_path(z, scenario):
+        i = first[scenario] + jnp.minimum((z.u[0] * count[scenario]).astype(jnp.int32),
+                                          count[scenario] - 1)
+        return _Pose(self._clip(qpos[i, 7:] + self.noise * z.normal), qpos[i, 3:7],
+                     clearance[i], qvel[i])
+      return on_path
 
     if family in BRIDGES:
       # A posture drawn uniformly on the straight line (joints and Trunk pitch) between two ends.
@@ -359,7 +416,12 @@ class ScenarioSampler:
     low = self.kin.geom_lowest_of(bpos, bquat)
     lift = pose.clearance - jnp.min(low)
     qpos = qpos.at[2].set(lift)
-    qvel = jnp.zeros(self.nv).at[0:3].set(lin_vel)
+    # The free joint's linear velocity is in the world frame (turned with the heading), its
+    # angular velocity in the Trunk frame (unchanged).
+    cos, sin = jnp.cos(yaw), jnp.sin(yaw)
+    v = pose.qvel
+    qvel = v.at[0:2].set(jnp.stack([cos * v[0] - sin * v[1], sin * v[0] + cos * v[1]]))
+    qvel = qvel.at[0:3].add(lin_vel)
     mocap = jnp.broadcast_to(jnp.asarray(OBSTACLE_PARK), (self.nmocap, 3))
     if self.nmocap:
       between = 0.5 * (bpos[self.ankles[0]] + bpos[self.ankles[1]])
