@@ -53,6 +53,7 @@ ACTION_CLIP = 3.0  # rad, as the curricula's [stage.action] clip
 STAND_TOLERANCES = (0.05, 0.2, 0.3)
 HOLD_S = 1.0
 SETTLE_S = 0.5  # the lying start rests on the floor, held at the stand pose, this long first
+KNOT_DECIMALS = 6  # knots are stored rounded; a later path's search continues with these
 
 # Postures (left-side joint angles) the supine search starts from, in the order of the motion.
 _ROCK = {"Shoulder_Pitch": -1.8, "Elbow_Yaw": 0.0, "Hip_Pitch": 1.55, "Knee_Pitch": 2.0,
@@ -331,7 +332,7 @@ def save(found: dict[str, tuple[np.ndarray, Path, dict]], out=PATHS_FILE) -> Non
     tensors[f"{name}/qpos"] = path.qpos.astype(np.float64)
     tensors[f"{name}/qvel"] = path.qvel.astype(np.float64)
     meta[f"{name}/stand_index"] = str(path.stand_index)
-    meta[f"{name}/knots"] = json.dumps(np.round(knots, 6).tolist())
+    meta[f"{name}/knots"] = json.dumps(np.round(knots, KNOT_DECIMALS).tolist())
     meta[f"{name}/search"] = json.dumps(settings)
   files.write_atomic(out, st_save(tensors, metadata=meta))
 
@@ -390,8 +391,10 @@ def main(argv=None) -> int:
         return 1
       found[name] = kept[name]
       continue
-    knots, path = search(name, {n: k for n, (k, _, _) in found.items()}, seed=args.seed,
-                         iterations=args.iterations)
+    # The paths this one continues with, as the file will hold them (rounded), so that a
+    # search with --only reproduces a full one.
+    earlier = {n: np.round(k, KNOT_DECIMALS) for n, (k, _, _) in found.items()}
+    knots, path = search(name, earlier, seed=args.seed, iterations=args.iterations)
     if path.stand_index < 0:
       print(f"error: the search found no {name} get-up that stands {HOLD_S} s; try another "
             "--seed or more --iterations", file=sys.stderr)
