@@ -9,8 +9,8 @@ first learns to finish the get-up from its late states, then from ever earlier o
 
 A path here is not a demonstration the policy imitates — no reward term reads it — but a
 sequence of physically consistent start states. It is found, not drawn by hand: open-loop PD
-targets on the sagittal joints (left and right equal; piecewise linear in time through
-`KNOT_TIMES`, the stand pose after the last knot), optimised by a cross-entropy search in plain
+targets (`Segment`: offsets from the stand pose, piecewise linear in time through knots, the
+stand pose after the last knot), optimised by a cross-entropy search in plain
 C MuJoCo (the scene as loaded: real torque limits, joint ranges and velocity limits) from a
 lying start, scored by Trunk height and uprightness and by the time it then stands (the
 environment's success detector). `PATHS` names the start of each path and the knots the search
@@ -73,8 +73,11 @@ class Segment:
   joints, piecewise linear through `knot_times` (s from the segment's start), then the stand
   pose until the next segment starts, `duration` s after this one (or the path ends)."""
 
-  driven: tuple[str, ...]  # joint names; with `mirrored`, left-side names without the prefix
-  mirrored: bool           # the right side copies the left (roll and yaw change sign: robot)
+  driven: tuple[str, ...]  # joint names; with `both_sides`, names without the side prefix
+  # One offset per name for the Left_ and the Right_ joint alike: the mirror image for pitch
+  # joints, not for the elbow yaw, whose axes are opposite (the found supine path bends one
+  # elbow as it straightens the other; a truly mirrored search would flip its sign).
+  both_sides: bool
   knot_times: tuple[float, ...]
   duration: float
   initial: tuple           # the search's initial mean, per knot (fraction, posture): that
@@ -98,7 +101,7 @@ PATHS: dict[str, PathSpec] = {
     # On the back: rock back onto the shoulders, swing forward into a squat, rise.
     "supine": PathSpec(
         pitch=-math.pi / 2,
-        search=Segment(driven=_SAGITTAL, mirrored=True,
+        search=Segment(driven=_SAGITTAL, both_sides=True,
                        knot_times=(0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75), duration=3.5,
                        initial=((0.0, None), (0.5, _ROCK), (1.0, _ROCK), (1.0, _ROCK),
                                 (1.0, _SQUAT), (1.0, _SQUAT), (0.5, _SQUAT), (0.0, None)),
@@ -108,7 +111,7 @@ PATHS: dict[str, PathSpec] = {
     # at the stand pose, then the supine path's get-up — the way our stage 2 learns it.
     "prone": PathSpec(
         pitch=math.pi / 2,
-        search=Segment(driven=_STAGE2, mirrored=False,
+        search=Segment(driven=_STAGE2, both_sides=False,
                        knot_times=(0.0, 0.25, 0.5, 0.75, 1.0, 1.25), duration=2.0,
                        initial=((0.0, None),) * 6, initial_std=1.0),
         then="supine", score_from=3.0, iterations=12),
@@ -151,8 +154,8 @@ class _Sim:
     self.index = {n: i for i, n in enumerate(robot.JOINT_NAMES)}
 
   def columns(self, seg: Segment) -> list[np.ndarray]:
-    """Joint indices each knot column drives: both sides of a mirrored segment, else one."""
-    if seg.mirrored:
+    """Joint indices each knot column drives: both sides (`both_sides`), else the named one."""
+    if seg.both_sides:
       sides = [np.array([self.index[f"{side}_{j}"] for j in seg.driven])
                for side in ("Left", "Right")]
       return sides
