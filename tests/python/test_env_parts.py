@@ -24,7 +24,7 @@ from jax_env.randomization import (OBSTACLE_PARK, Pusher, Randomizer,
                                    constrained_model, delayed_ctrl, dampratio_to_restitution,
                                    restitution_to_dampratio, slope_gravity,
                                    velocity_limited_target)
-from jax_env.scenarios import REST_CLEARANCE, SETTLING_SCENARIOS, ScenarioSampler
+from jax_env.scenarios import PATH_SCENARIOS, REST_CLEARANCE, SETTLING_SCENARIOS, ScenarioSampler
 
 B_PER_SCENARIO = 3
 
@@ -139,9 +139,13 @@ def test_every_scenario_reset_is_valid(initial, model, full_stage):
     assert np.linalg.norm(q[3:7]) == pytest.approx(1.0, abs=1e-5)
     assert np.all(q[7:] >= lo - 1e-5) and np.all(q[7:] <= hi + 1e-5), name
     assert bool(init.settles[i]) == (name in SETTLING_SCENARIOS)
-    # The lowest point sits just above the floor (drops: up to 0.3 m above it).
+    # The lowest point sits just above the floor (drops: up to 0.3 m above it; a state on a
+    # get-up path where the path had it, never lower: the swing of the supine path leaves the
+    # floor for a moment).
     if name == "random_drop":
       assert 0.05 - 1e-4 <= low[i] <= 0.3 + 1e-4
+    elif name in PATH_SCENARIOS:
+      assert REST_CLEARANCE - 1e-4 <= low[i] <= 0.3, name
     else:
       assert low[i] == pytest.approx(REST_CLEARANCE, abs=1e-4), name
     # No robot geom touches the floor at the start.
