@@ -51,7 +51,10 @@ joint noise), Trunk orientation and every velocity, placed at the height its low
 there — states with the momentum of the rock that a static key state such as `rock_back` lacks.
 `prone_path` does the same on the stored prone path: a roll from lying prone onto the back with
 stage 2's joints (hip roll included), then the supine get-up — for stage 2, whose prone get-up
-rolls onto the back.
+rolls onto the back. `kneel_path` starts on the stored kneel path: from `ksi_prone_3` (on the
+shins, hands down) onto the back with the sagittal joints alone — the planar stage's action
+space, within its side-roll and upside-down terminations — then the supine get-up: the prone key
+states' way up that the planar stage can learn (a direct rise onto the feet was never found).
 """
 
 from __future__ import annotations
@@ -77,7 +80,7 @@ KSI_SCENARIOS: tuple[str, ...] = ("ksi_prone_1", "ksi_prone_2", "ksi_prone_3", "
 SCENARIOS: tuple[str, ...] = KSI_SCENARIOS + ("supine", "prone", "lateral", "sitting",
                                               "crossed_legs", "random_drop", "stand", "squat",
                                               "kneel_to_crouch", "sit_to_crouch", "rock_back",
-                                              "supine_path", "prone_path")
+                                              "supine_path", "prone_path", "kneel_path")
 
 # Scenarios whose initial pose is not a resting pose: their episodes start with settling.
 SETTLING_SCENARIOS = frozenset({"lateral", "sitting", "crossed_legs", "random_drop"})
@@ -104,7 +107,7 @@ ROCK_BACK_PITCH = -2.4
 
 # Reference state initialisation: the scenario drawing from each stored get-up path
 # (`jax_env.getup_paths`).
-PATH_SCENARIOS = {"supine_path": "supine", "prone_path": "prone"}
+PATH_SCENARIOS = {"supine_path": "supine", "prone_path": "prone", "kneel_path": "kneel"}
 
 
 # Reverse-curriculum bridges: a start drawn uniformly between two ends (keyframes, or the toe
