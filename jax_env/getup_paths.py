@@ -13,8 +13,8 @@ targets (`Segment`: offsets from the stand pose, piecewise linear in time throug
 stand pose after the last knot), optimised by a cross-entropy search in plain
 C MuJoCo (the scene as loaded: real torque limits, joint ranges and velocity limits) from a
 lying start, scored by Trunk height and uprightness and by the time it then stands (the
-environment's success detector). `PATHS` names the start of each path (lying, or a key state) and the knots the search
-starts from. The states along the found motion — qpos and qvel after every control step, from
+environment's success detector). `PATHS` names the start of each path (lying, or a key state)
+and the knots the search starts from. The states along the found motion — qpos and qvel after every control step, from
 the start until the robot meets the standing condition — are stored in
 `assets/t1/getup_paths.safetensors` with the knots and the search settings in its metadata, so
 that the environment only reads them.
@@ -99,7 +99,8 @@ class PathSpec:
   seed: int = 0      # of the stored path's search
   keyframe: str | None = None  # starts at this keyframe instead (settled, held at its joints)
   # What the search pays before `score_from`: "rise" (height and uprightness, 0.3×) or "back"
-  # (turning onto the back, for a path that continues with the supine one).
+  # (turning onto the back, for a path that continues with the supine one: 0.1× the Trunk's
+  # chest-up component, 0.3× in the last 0.75 s, so that it lies on the back when it hands over).
   early_goal: str = "rise"
   # (side roll |g_y|, upside down g_z) the path must stay within: the planar stage's
   # terminations (curricula [stage.termination]) for a path that stage starts on; a sample that
@@ -293,7 +294,7 @@ def plan_of(name: str, knots: dict[str, np.ndarray]) -> list:
 
 
 def replay(name: str, knots: dict[str, np.ndarray]) -> Path:
-  """The path `name` simulated again from its lying start with the given knots."""
+  """The path `name` simulated again from its start with the given knots."""
   sim = _worker_sim()
   return sim.rollout(_worker_start(name), plan_of(name, knots), PATHS[name], record=True)[1]
 
