@@ -164,12 +164,11 @@ class _Sim:
     jid = [m.joint(n).id for n in robot.JOINT_NAMES]
     self.qadr = np.array([m.jnt_qposadr[j] for j in jid])
     self.dadr = np.array([m.jnt_dofadr[j] for j in jid])
-    self.lo, self.hi = m.jnt_range[jid, 0].copy(), m.jnt_range[jid, 1].copy()
-    by_joint = {int(m.actuator_trnid[a, 0]): a for a in range(m.nu)}
-    self.act = np.array([by_joint[j] for j in jid])
-    self.kp = m.actuator_gainprm[self.act, 0].copy()
-    self.kd = -m.actuator_biasprm[self.act, 2].copy()
-    self.v_max = np.asarray(robot.VELOCITY_LIMITS, np.float64)
+    # load_model checks that actuator i drives joint i of robot.JOINT_NAMES.
+    self.act = np.arange(len(robot.JOINT_NAMES))
+    joints = robot.joint_arrays(m)
+    self.lo, self.hi = joints.range_low, joints.range_high
+    self.kp, self.kd, self.v_max = joints.kp, joints.kd, joints.velocity_limit
     self.stand = np.asarray(robot.stand_pose(m), np.float64)
     self.stand_height = float(robot.keyframe(m, "stand")[0][2])
     self.trunk = m.body("Trunk").id
