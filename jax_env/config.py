@@ -28,7 +28,8 @@ from jax_env.names import (ACTIVATIONS, DR_PARAMS, JOINT_NAMES, KEYFRAMES, REWAR
 from jax_env.stage_config import (ACTION_MAPPINGS, DR_DISTRIBUTIONS, DR_OPERATIONS,
                                   LR_SCHEDULES, ON_MISS, SCHEDULE_KEYS, ActionConfig,
                                   AdvanceConfig, AssistConfig, ConstraintsConfig, DelayConfig,
-                                  DomainRandomizationConfig, DRParam, MirrorConfig,
+                                  DomainRandomizationConfig, DRParam, ImitationConfig,
+                                  MirrorConfig,
                                   MonitorConfig, PPOConfig, PushConfig, RewardParams,
                                   RewardShaping, RMAConfig, ScenarioParams, Schedule,
                                   SimConfig, StageConfig, SuccessConfig, TerminationConfig,
@@ -38,7 +39,7 @@ __all__ = [
     "ConfigError", "check_stage", "parse_stage",
     # The typed stage (jax_env.stage_config), re-exported as this module's result types.
     "ActionConfig", "AdvanceConfig", "AssistConfig", "ConstraintsConfig", "DelayConfig",
-    "DomainRandomizationConfig", "DRParam", "MirrorConfig", "MonitorConfig",
+    "DomainRandomizationConfig", "DRParam", "ImitationConfig", "MirrorConfig", "MonitorConfig",
     "PPOConfig", "PushConfig", "RewardParams", "RewardShaping", "RMAConfig", "ScenarioParams",
     "Schedule", "SimConfig", "StageConfig", "SuccessConfig", "TerminationConfig", "TerrainConfig",
 ]
@@ -294,7 +295,7 @@ class _Parser:
     sections = ("sim", "action", "constraints", "scenarios", "scenario_params", "terrain",
                 "rewards", "reward_params", "success", "domain_randomization", "delay", "push",
                 "ppo", "rma", "mirror", "advance")
-    optional = ("reward_shaping", "termination", "monitor", "assist")
+    optional = ("reward_shaping", "termination", "monitor", "assist", "imitation")
     if self.table(d, [], ("name", "init_from", "controlled_joints", "observed_joints")
                   + sections, optional) is None:
       return None
@@ -330,6 +331,7 @@ class _Parser:
         termination=self.termination(d.get("termination", {})),
         monitor=self.monitor(d.get("monitor", {})),
         assist=self.assist(d.get("assist", {})),
+        imitation=self.imitation(d.get("imitation", {})),
     )
     if self.errors or any(v is None for v in out.values()):
       return None
@@ -539,6 +541,21 @@ class _Parser:
       if schedule is None:
         return None
     return None if force is None else AssistConfig(force=force, schedule=schedule)
+
+  def imitation(self, d):
+    p = ["imitation"]
+    d = self._section(d, "imitation", (), ("weight", "schedule", "forcing"))
+    weight = self.number(d, "weight", p, minimum=0.0, default=ImitationConfig().weight)
+    forcing = self.number(d, "forcing", p, minimum=0.0, maximum=1.0,
+                          default=ImitationConfig().forcing)
+    schedule = None
+    if d is not None and "schedule" in d:
+      schedule = self.penalty_schedule(d["schedule"], p + ["schedule"])
+      if schedule is None:
+        return None
+    if weight is None or forcing is None:
+      return None
+    return ImitationConfig(weight=weight, schedule=schedule, forcing=forcing)
 
   def monitor(self, d):
     p = ["monitor"]

@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jax_env import features
+from jax_env import features, getup_paths
 from jax_env import rewards as rewards_lib
 from jax_env import robot
 from jax_env.kinematics import Kinematics, quat_to_mat, rotate_inverse
@@ -112,6 +112,11 @@ class EnvState:
   success: rewards_lib.SuccessState
   episode_return: jax.Array  # [B]
   rng: jax.Array  # [B] per-env PRNG keys
+  # [B] int32 row of the stored path's plan for the current state of an episode that started on
+  # a get-up path (−1: none, or past the path's end), and the end of its rows (`teacher_action`).
+  teacher_row: jax.Array
+  teacher_end: jax.Array
+  teacher_forced: jax.Array  # [B] float 0/1: the episode acts with the plan ([stage.imitation])
 
 
 class FallRecoveryEnv:
@@ -185,6 +190,7 @@ class FallRecoveryEnv:
     self.randomizer = Randomizer(stage, m)
     self.pusher = Pusher(stage)
     self.sampler = ScenarioSampler(stage, m, self.randomizer)
+    self._init_teacher()
     # Targets must be kept long enough to serve the longest delay.
     max_delay = self.randomizer.max_delay_substeps
     self.target_history = int(math.ceil(max_delay / self.n_substeps)) + 1
@@ -217,8 +223,8 @@ class FallRecoveryEnv:
     batch = keys.shape[0]
     mocap = jnp.broadcast_to(self.sampler.park, (batch, self.mj_model.nmocap, 3))
     settles = jnp.full((batch,), settle)
-    return self._start(keys, draw, qpos, qvel, mocap, jnp.full((batch,), -1, jnp.int32),
-                       settles)
+    none = jnp.full((batch,), -1, jnp.int32)
+    return self._start(keys, draw, qpos, qvel, mocap, none, settles, teacher=(none, none))
 
   def _split(self, keys, n):
     out = jax.vmap(lambda k: jax.random.split(k, n))(keys)
@@ -236,10 +242,10 @@ class FallRecoveryEnv:
     draw = self._draw(k_draw, terrain)
     init = self.sampler.sample(k_scn, draw, scenario)
     return self._start(keys, draw, init.qpos, init.qvel, init.mocap_pos, init.scenario,
-                       init.settles, init.geom_lowest)
+                       init.settles, init.geom_lowest, (init.teacher_row, init.teacher_end))
 
-  def _start(self, keys, draw, qpos, qvel, mocap, scenario, settles, geom_lowest=None
-             ) -> EnvState:
+  def _start(self, keys, draw, qpos, qvel, mocap, scenario, settles, geom_lowest=None,
+             teacher=None) -> EnvState:
     batch = qpos.shape[0]
     keys, k_push = self._split(keys, 2)
     qpos = qpos.astype(jnp.float32)
@@ -271,7 +277,9 @@ class FallRecoveryEnv:
         targets=jnp.broadcast_to(hold[:, None], (batch, self.target_history, hold.shape[-1])),
         hold_target=hold, last_action=zeros_a, prev_action=zeros_a, prev_qvel=qvel, push=push,
         push_active=jnp.zeros((batch,), bool), success=rewards_lib.success_init(batch),
-        episode_return=zeros, rng=keys)
+        episode_return=zeros, rng=keys, teacher_row=teacher[0].astype(jnp.int32),
+        teacher_end=teacher[1].astype(jnp.int32),
+        teacher_forced=self._teacher_forced(keys, teacher[0]))
 
   def _reset_view(self, qpos, qvel, geom_lowest) -> PhysicsView:
     batch = qpos.shape[0]
@@ -396,7 +404,8 @@ class FallRecoveryEnv:
         low_steps=low_steps, max_height=max_height, stand_steps=stand_steps,
         targets=history[:, :self.target_history], last_action=applied,
         prev_action=state.last_action, prev_qvel=view.qvel, push=push, push_active=pushing,
-        success=success, episode_return=episode_return, rng=rng)
+        success=success, episode_return=episode_return, rng=rng,
+        teacher_row=self._next_teacher_row(state))
 
     # 6. Auto-reset with fresh draws, only computed when some episode ended.
     def auto_reset(nxt):
@@ -410,6 +419,44 @@ class FallRecoveryEnv:
       return merged.replace(**keep)
 
     return jax.lax.cond(jnp.any(done), auto_reset, lambda n: n, nxt)
+
+  # -------------------------------------------------------------------------------------------
+  # The get-up paths' plans (`[stage.imitation]`).
+
+  def _init_teacher(self):
+    """The plan's actions of every stored path state under this stage's action mapping, and
+    which rows a policy of this stage can follow: the "default" mapping (the plan's targets
+    are offsets from the stand pose), the paths' control period, and every joint the path
+    moves among the controlled ones (the others are held at the stand pose)."""
+    sampler, s = self.sampler, self.stage
+    rows = [len(getup_paths.load()[n].qpos) for n in sampler.teacher_paths]
+    controlled = set(s.controlled_joints)
+    followable = [s.action.mapping == "default"
+                  and abs(self.ctrl_dt - getup_paths.CTRL_DT) < 1e-9
+                  and getup_paths.driven_joints(n) <= controlled
+                  for n in sampler.teacher_paths]
+    self.teacher_actions = (sampler.teacher[:, self.ctrl_idx] / s.action.scale
+                            ).astype(np.float32)
+    self.teacher_ok = np.repeat(np.array(followable), rows)
+
+  def _teacher_forced(self, keys, row) -> jax.Array:
+    """[B] 1 for the share `forcing` of the path episodes (a draw of its own: fold_in leaves
+    every other random stream as it is)."""
+    u = jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, 7)))(keys)
+    return ((row >= 0) & (u < self.stage.imitation.forcing)).astype(jnp.float32)
+
+  def _next_teacher_row(self, state: EnvState) -> jax.Array:
+    row = jnp.where(state.teacher_row >= 0, state.teacher_row + 1, -1)
+    return jnp.where(row < state.teacher_end, row, -1).astype(jnp.int32)
+
+  def teacher_action(self, state: EnvState) -> tuple[jax.Array, jax.Array]:
+    """([B, nA] the stored path's action for the current state, [B] 1 where there is one):
+    an episode started on a get-up path has, at its k-th step, the action the path's plan
+    issued k steps after the start state (whether or not the policy has kept to the path)."""
+    row = state.teacher_row
+    ok = (row >= 0) & jnp.asarray(self.teacher_ok)[jnp.maximum(row, 0)]
+    action = jnp.asarray(self.teacher_actions)[jnp.maximum(row, 0)]
+    return action, ok.astype(jnp.float32)
 
   def _terminations(self, state: EnvState, x: rewards_lib.Quantities, active):
     """(low-height streak [B], terminated [B] bool) after a step; only while control is on."""

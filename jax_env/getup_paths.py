@@ -215,8 +215,9 @@ class _Sim:
       mujoco.mj_step(self.model, d)
     return d
 
-  def targets(self, plan, t: float, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
-    """PD targets at time t of a plan [(Segment, knots)], segments back to back."""
+  def planned(self, plan, t: float) -> np.ndarray:
+    """The plan's PD targets at time t [(Segment, knots)], segments back to back, before the
+    velocity-limit rule and the joint ranges."""
     target = self.stand.copy()
     begin = 0.0
     for seg, knots in plan:
@@ -229,6 +230,12 @@ class _Sim:
             target[cols] = self.stand[cols] + np.clip(a, -ACTION_CLIP, ACTION_CLIP)
         break
       begin += seg.duration
+    return target
+
+  def targets(self, plan, t: float, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+    """The PD targets applied at time t: the plan's, then as the environment and the
+    plain-MuJoCo evaluator apply any target (velocity limit, joint ranges)."""
+    target = self.planned(plan, t)
     # As the environment and the plain-MuJoCo evaluator: no torque along q̇ beyond the limit.
     free = q + self.kd * qd / self.kp
     target = np.where(qd >= self.v_max, np.minimum(target, free), target)
@@ -290,6 +297,29 @@ def plan_of(name: str, knots: dict[str, np.ndarray]) -> list:
     plan.append((PATHS[name].search, np.asarray(knots[name])))
     name = PATHS[name].then
   return plan
+
+
+def teacher_offsets(name: str, knots: dict[str, np.ndarray], frames: int) -> np.ndarray:
+  """[frames, 23] the PD targets the path's plan issues in each stored state (frame f is the
+  state after f control steps; its targets are those at t = f·CTRL_DT), within the joint
+  ranges, as offsets from the stand pose: the action of the "default" mapping (scale 1) that
+  reproduces the path, for a policy that learns from it (`[stage.imitation]`)."""
+  sim = _worker_sim()
+  plan = plan_of(name, knots)
+  return np.stack([np.clip(sim.planned(plan, f * CTRL_DT), sim.lo, sim.hi) - sim.stand
+                   for f in range(frames)])
+
+
+def driven_joints(name: str) -> frozenset[str]:
+  """The joints path `name`'s plan moves away from the stand pose (its segments' and those of
+  the paths it continues with)."""
+  joints = set()
+  while name is not None:
+    seg = PATHS[name].search
+    joints |= ({f"{side}_{j}" for side in ("Left", "Right") for j in seg.driven}
+               if seg.both_sides else set(seg.driven))
+    name = PATHS[name].then
+  return frozenset(joints)
 
 
 def replay(name: str, knots: dict[str, np.ndarray]) -> Path:

@@ -147,6 +147,10 @@ class InitialState:
   scenario: jax.Array  # [B] int32 index into SCENARIOS
   settles: jax.Array  # [B] bool: the episode starts with settle_s of settling
   geom_lowest: jax.Array  # [B, ngeom_robot] lowest z of each robot collision geom (Kinematics)
+  # [B] int32 row of `ScenarioSampler.teacher` for the start state of a path scenario (the
+  # plan's targets there), −1 for every other scenario; and the end of its path's rows.
+  teacher_row: jax.Array
+  teacher_end: jax.Array
 
 
 @struct.dataclass
@@ -165,6 +169,8 @@ class _Pose:
   quat: jax.Array  # [4] before the random heading
   clearance: jax.Array  # []
   qvel: jax.Array | None = None  # [nv] before the random heading; None: at rest
+  teacher_row: jax.Array | None = None  # [] int32 (see InitialState); None: −1
+  teacher_end: jax.Array | None = None
 
 
 class ScenarioSampler:
@@ -232,7 +238,11 @@ class ScenarioSampler:
     the `lax.switch` returns the same structure."""
     def pose(z, scenario):
       p = pose_fn(z, scenario)
-      return p if p.qvel is not None else p.replace(qvel=jnp.zeros(self.nv))
+      if p.qvel is None:
+        p = p.replace(qvel=jnp.zeros(self.nv))
+      if p.teacher_row is None:
+        p = p.replace(teacher_row=jnp.int32(-1), teacher_end=jnp.int32(-1))
+      return p
     return pose
 
   def _pose_fn(self, family: str):
@@ -314,12 +324,26 @@ class ScenarioSampler:
       lowest = jax.vmap(lambda q: jnp.min(self.kin.geom_lowest_of(*self.kin.bodies(q))))(qpos)
       clearance = jnp.maximum(lowest, rest)
       first, count = jnp.asarray(first), jnp.asarray(count)
+      # The plan's targets in every stored state of every path (not only the rise), rows in
+      # the order of PATH_SCENARIOS, for `[stage.imitation]`.
+      knots = getup_paths.stored_knots()
+      lengths = {n: len(stored[n].qpos) for n in rises}
+      self.teacher = np.concatenate([getup_paths.teacher_offsets(n, knots, lengths[n])
+                                     for n in rises]).astype(np.float32)
+      self.teacher_paths = tuple(rises)
+      starts = np.cumsum([0] + [lengths[n] for n in rises])
+      t_first = np.zeros(len(SCENARIOS), np.int32)
+      t_end = np.zeros(len(SCENARIOS), np.int32)
+      for k, scenario_name in enumerate(PATH_SCENARIOS):
+        t_first[SCENARIOS.index(scenario_name)] = starts[k]
+        t_end[SCENARIOS.index(scenario_name)] = starts[k + 1]
+      t_first, t_end = jnp.asarray(t_first), jnp.asarray(t_end)
 
       def on_path(z, scenario):
-        i = first[scenario] + jnp.minimum((z.u[0] * count[scenario]).astype(jnp.int32),
-                                          count[scenario] - 1)
+        local = jnp.minimum((z.u[0] * count[scenario]).astype(jnp.int32), count[scenario] - 1)
+        i = first[scenario] + local
         return _Pose(self._clip(qpos[i, 7:] + self.noise * z.normal), qpos[i, 3:7],
-                     clearance[i], qvel[i])
+                     clearance[i], qvel[i], t_first[scenario] + local, t_end[scenario])
       return on_path
 
     if family in BRIDGES:
@@ -433,4 +457,5 @@ class ScenarioSampler:
                                                           jnp.asarray(OBSTACLE_PARK)))
     settles = jnp.asarray(self.settles)[scenario]
     return InitialState(qpos=qpos, qvel=qvel, mocap_pos=mocap, scenario=scenario,
-                        settles=settles, geom_lowest=low + lift)
+                        settles=settles, geom_lowest=low + lift, teacher_row=pose.teacher_row,
+                        teacher_end=pose.teacher_end)

@@ -141,6 +141,25 @@ class AssistConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class ImitationConfig:
+  """Learning from the stored get-up paths (ours; kickstarting, Schmitt et al. 2018): in an
+  episode that started on a path (`supine_path`, `prone_path`, `kneel_path`), PPO's loss adds
+  `weight` × the schedule's scale × the mean squared difference between the policy's mean
+  action and the action the path's plan issued at the same time since the start (a
+  behaviour-cloning term on the policy's own states; no reward reads the path). With
+  by = "stand_rate" the scale never increases within a stage (a downward ratchet). A
+  schedule should reach 0 before the stage ends, so that PPO alone shapes the final policy."""
+
+  weight: float = 0.0  # at scale 1; 0: off
+  schedule: Schedule | None = None  # None: the full weight throughout
+  # The share of path episodes that act with the plan's action (plus the policy's noise)
+  # instead of the policy's while the imitation weight is on: their states stay on the path,
+  # where the plan's action is a function of the state (on the policy's own states, a plan
+  # indexed by time asks different things of one state). They train only the imitation term.
+  forcing: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
 class MonitorConfig:
   """The deterministic stand-rate monitor during training (no action noise)."""
 
@@ -270,6 +289,7 @@ class StageConfig:
   termination: TerminationConfig = TerminationConfig()
   monitor: MonitorConfig = MonitorConfig()
   assist: AssistConfig = AssistConfig()
+  imitation: ImitationConfig = ImitationConfig()
 
   @property
   def monitor_scenarios(self) -> tuple[str, ...]:

@@ -54,6 +54,11 @@ class Transition:
   done: jax.Array
   truncation: jax.Array
   active: jax.Array  # 1 where the action took effect (not settling)
+  # The stored get-up path's action for this state (env.teacher_action) and 1 where there is
+  # one (an episode started on a path, still within it); zeros without [stage.imitation].
+  teacher: jax.Array
+  teacher_mask: jax.Array
+  forced: jax.Array  # 1 where the plan's action was taken instead of the policy's
 
 
 @struct.dataclass
@@ -131,11 +136,13 @@ def compute_targets(nets: nets_lib.Networks, params: dict, normalizer, data: Tra
 
 
 def ppo_loss(train_params: dict, normalizer, mb: dict, nets: nets_lib.Networks, cfg,
-             mirror_weight: float, maps, old_log_std: jax.Array):
+             mirror_weight: float, maps, old_log_std: jax.Array, imitation_weight=0.0):
   """PPO loss on one minibatch of single transitions; returns (loss, metrics).
 
   mb: obs, privileged, action, loc, log_prob, target, advantage, weight (1 where the
-  transition trains the policy: the action took effect and the step was not a truncation).
+  transition trains the policy: the action took effect and the step was not a truncation),
+  teacher and teacher_weight (the path's action, and 1 where it applies and the action took
+  effect). imitation_weight: [stage.imitation]'s weight × its schedule's scale (traced).
   """
   pol = train_params["policy"]
   obs_n, priv_n = nets_lib.normalize(normalizer, mb["obs"], mb["privileged"])
@@ -173,11 +180,17 @@ def ppo_loss(train_params: dict, normalizer, mb: dict, nets: nets_lib.Networks, 
     sym = jax.lax.stop_gradient(sym)
     mirror_loss = jnp.zeros(())
 
-  total = policy_loss + value_loss + entropy_loss + mirror_loss
+  # Kickstarting from the stored paths: the policy's mean toward the plan's action.
+  imitation_error = _weighted_mean(jnp.mean(jnp.square(loc - mb["teacher"]), axis=-1),
+                                   mb["teacher_weight"])
+  imitation_loss = imitation_weight * imitation_error
+
+  total = policy_loss + value_loss + entropy_loss + mirror_loss + imitation_loss
   kl = _weighted_mean(gaussian_kl(mb["loc"], old_log_std, jax.lax.stop_gradient(loc),
                                   jax.lax.stop_gradient(log_std)), w)
   metrics = {"total": total, "policy": policy_loss, "value": value_loss,
              "entropy": entropy_loss, "mirror": mirror_loss, "symmetry_error": sym,
+             "imitation": imitation_loss, "imitation_error": imitation_error,
              "kl": kl, "clip_fraction": _weighted_mean(
                  (jnp.abs(ratio - 1) > cfg.clip_epsilon).astype(jnp.float32), w),
              "action_std": jnp.mean(std)}
@@ -204,7 +217,7 @@ def bound_action_std(train_params: dict, max_action_std: float | None) -> dict:
 
 def ppo_update(state: LearnerState, data: Transition, final_obs, final_privileged,
                key: jax.Array, *, nets: nets_lib.Networks, cfg, mirror_weight: float, maps,
-               calibrate=None, axis_name: str | None = None):
+               calibrate=None, axis_name: str | None = None, imitation_weight=0.0):
   """One PPO update on a rollout [T, B_local]; returns (state, metrics averaged).
   calibrate: per-feature masks for `networks.calibrate_normalizer` (the first iteration of a
   stage started from a checkpoint), or None."""
@@ -216,7 +229,9 @@ def ppo_update(state: LearnerState, data: Transition, final_obs, final_privilege
   samples = {
       "obs": data.obs, "privileged": data.privileged, "action": data.action, "loc": data.loc,
       "log_prob": data.log_prob, "target": targets, "advantage": advantages,
-      "weight": data.active * (1.0 - data.truncation),
+      # A forced step's action is not the policy's sample: it trains only the imitation term.
+      "weight": data.active * (1.0 - data.truncation) * (1.0 - data.forced),
+      "teacher": data.teacher, "teacher_weight": data.teacher_mask * data.active,
   }
   samples = jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), samples)
   n = samples["obs"].shape[0]
@@ -227,7 +242,8 @@ def ppo_update(state: LearnerState, data: Transition, final_obs, final_privilege
   optimizer = make_optimizer(cfg.max_grad_norm)
   grad_fn = jax.value_and_grad(
       functools.partial(ppo_loss, nets=nets, cfg=cfg, mirror_weight=mirror_weight, maps=maps,
-                        old_log_std=old_log_std), has_aux=True)
+                        old_log_std=old_log_std, imitation_weight=imitation_weight),
+      has_aux=True)
 
   def minibatch_step(carry, mb):
     train_params, opt_state, lr = carry

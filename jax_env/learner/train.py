@@ -64,6 +64,7 @@ class LearnerConfig:
   action: Mapping[str, Any]  # {"mapping", "scale", "clip"}, recorded in checkpoints
   penalty_schedule: Any = None  # config.Schedule, or None: penalties at full weight
   assist: Any = None  # config.AssistConfig, or None: no assisting force
+  imitation: Any = None  # config.ImitationConfig, or None: no learning from the paths' plans
   monitor: Any = None  # config.MonitorConfig with its scenarios resolved, or None: off
 
   @classmethod
@@ -74,6 +75,7 @@ class LearnerConfig:
                action=dataclasses.asdict(stage.action),
                penalty_schedule=stage.reward_shaping.penalty_schedule,
                assist=stage.assist if stage.assist.force > 0 else None,
+               imitation=stage.imitation if stage.imitation.weight > 0 else None,
                monitor=monitor if monitor.every > 0 else None)
 
   def network_config(self, env) -> nets_lib.NetworkConfig:
@@ -261,8 +263,8 @@ def _summarize(stats: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _with_schedules(env, env_state, schedules):
-  """The env state with this iteration's schedule values, [penalty scale, assist force (N)]
-  (an env without penalties or an assist ignores them)."""
+  """The env state with this iteration's schedule values, [penalty scale, assist force (N),
+  imitation weight] (the last is the learner's; an env without penalties or an assist ignores them)."""
   if hasattr(env, "with_penalty_scale"):
     env_state = env.with_penalty_scale(env_state, schedules[0])
   if hasattr(env, "with_assist_force"):
@@ -318,11 +320,20 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
       std = jnp.broadcast_to(jnp.exp(log_std), loc.shape)
       noise = correlated_noise(noise, k, rho)
       action = loc + std * noise
+      if config.imitation is not None:
+        teacher, teacher_mask = env.teacher_action(es)
+        # Forced path episodes act with the plan (and the policy's noise) while imitation is on.
+        forced = teacher_mask * es.teacher_forced * (schedules[2] > 0)
+        action = jnp.where(forced[:, None] > 0, teacher + std * noise, action)
+      else:
+        teacher, teacher_mask = jnp.zeros_like(loc), jnp.zeros_like(es.control_active)
+        forced = jnp.zeros_like(es.control_active)
       log_prob = dist.log_prob((loc, std), action)
       nxt = env.step(es, action)
       tr = ppo_lib.Transition(obs=es.obs, privileged=es.privileged, action=action, loc=loc,
                               log_prob=log_prob, reward=nxt.reward, done=nxt.done,
-                              truncation=nxt.truncation, active=es.control_active)
+                              truncation=nxt.truncation, active=es.control_active,
+                              teacher=teacher, teacher_mask=teacher_mask, forced=forced)
       if rho:
         noise = restart_noise(noise, k, nxt.done)
       return ((nxt, nets_lib.push_history(hist, es.obs, nxt.done), noise),
@@ -332,7 +343,8 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
         step, (env_state, history, noise), jax.random.split(k_roll, unroll))
     learner, metrics = ppo_lib.ppo_update(
         learner, data, env_state.obs, env_state.privileged, k_update, nets=nets, cfg=ppo_cfg,
-        mirror_weight=config.mirror_weight, maps=maps, calibrate=calibrate, axis_name=AXIS)
+        mirror_weight=config.mirror_weight, maps=maps, calibrate=calibrate, axis_name=AXIS,
+        imitation_weight=schedules[2])
     return learner, env_state, history, metrics, scan_stats(stats)
 
   def adaptation_iteration(learner: ppo_lib.LearnerState, env_state, history, key,
@@ -428,7 +440,10 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
                for kind in ("obs", "privileged")}
   penalty = ScheduleScale(config.penalty_schedule)
   assist = ScheduleScale(config.assist.schedule if config.assist else None, ratchet=min)
-  progress = Progress(penalty_scale=penalty.initial, assist_scale=assist.initial)
+  imitation = ScheduleScale(config.imitation.schedule if config.imitation else None,
+                            ratchet=min)
+  progress = Progress(penalty_scale=penalty.initial, assist_scale=assist.initial,
+                      imitation_scale=imitation.initial)
   reset = jax.jit(env.reset)
   env_state = None
   history = None
@@ -488,7 +503,7 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
       checkpoints_dir=Path(stage_dir) / "checkpoints", stage_config=stage_config,
       budgets=_Budgets(steps_per_iter=steps_per_iter, ppo=ppo_budget, adaptation=adapt_budget),
       steps={"ppo": ppo_iter, "adaptation": adapt_iter}, monitor=monitor, penalty=penalty,
-      assist=assist, callback=callback, log=log, progress=progress, learner=learner,
+      assist=assist, imitation=imitation, callback=callback, log=log, progress=progress, learner=learner,
       env_state=env_state, history=history, key=key, calibrate=calibrate)
   log(f"stage {config.stage_name}: {batch} envs on {n_dev} device(s), {steps_per_iter} env "
       f"steps per iteration, PPO budget {ppo_budget}, adaptation {adapt_budget}")
@@ -516,6 +531,7 @@ class Progress:
   finished_early: bool = False  # the callback answered "finish" during PPO
   penalty_scale: float = 1.0  # the penalty schedule's scale for the next PPO rollout
   assist_scale: float = 1.0  # the assist schedule's scale for the next PPO rollout
+  imitation_scale: float = 1.0  # the imitation schedule's scale for the next PPO update
   # The best monitor point so far ([stage.monitor] keep_best): its mean stand rate and the env
   # steps of the checkpoint written there.
   best_monitor_rate: float | None = None
@@ -555,13 +571,16 @@ class _StageRun:
 
   def __init__(self, *, config: LearnerConfig, net_cfg, names, devices, batch: int, seed: int,
                checkpoints_dir: Path, stage_config, budgets: _Budgets, steps, monitor,
-               penalty: ScheduleScale, assist: ScheduleScale, callback, log,
+               penalty: ScheduleScale, assist: ScheduleScale, imitation: ScheduleScale,
+               callback, log,
                progress: Progress, learner, env_state, history, key, calibrate):
     self.config, self.net_cfg, self.names, self.seed = config, net_cfg, names, seed
     self.checkpoints_dir, self.stage_config = checkpoints_dir, stage_config
     self.budgets, self.steps, self.monitor, self.penalty = budgets, steps, monitor, penalty
     self.assist = assist
     self.assist_newtons = float(config.assist.force) if config.assist else 0.0
+    self.imitation = imitation
+    self.imitation_weight = float(config.imitation.weight) if config.imitation else 0.0
     self.callback, self.log, self.progress = callback, log, progress
     self.n_dev = len(devices)
     self.sharding = _device_sharding(devices)
@@ -622,7 +641,8 @@ class _StageRun:
     scale = progress.penalty_scale
     # The adaptation module learns under deployment's conditions: no assist.
     force = self.assist_newtons * progress.assist_scale if phase == "ppo" else 0.0
-    schedules = jnp.tile(jnp.asarray([scale, force], jnp.float32), (self.n_dev, 1))
+    imitation = self.imitation_weight * progress.imitation_scale
+    schedules = jnp.tile(jnp.asarray([scale, force, imitation], jnp.float32), (self.n_dev, 1))
     self.learner, self.env_state, self.history, metrics, stats = self.steps[phase](
         self.learner, self.env_state, self.history,
         _put(jax.random.split(k_iter, self.n_dev), self.sharding), _put(schedules, self.sharding),
@@ -638,12 +658,17 @@ class _StageRun:
               "steps_per_s": steps / max(dt, 1e-9), "total_env_steps": total,
               "phase": phase, "losses": {k: float(v) for k, v in metrics.items()},
               "penalty_scale": scale, "assist_force": force}
+    if self.imitation_weight > 0 and phase == "ppo":
+      report["imitation_weight"] = imitation
     report.update(_summarize(stats))
     if phase == "ppo":
       progress.penalty_scale = self.penalty.after(scale, progress.ppo_env_steps,
                                                   report["stand_rate"])
       progress.assist_scale = self.assist.after(progress.assist_scale, progress.ppo_env_steps,
                                                 report["stand_rate"])
+      progress.imitation_scale = self.imitation.after(progress.imitation_scale,
+                                                      progress.ppo_env_steps,
+                                                      report["stand_rate"])
       last = progress.ppo_env_steps >= self.budgets.ppo
       if self.monitor is not None and monitor_lib.is_due(progress.iteration,
                                                          config.monitor.every, last):

@@ -8,7 +8,7 @@
 //! absent), which is the stage table Python receives.
 //!
 //! The optional tables `[stage.reward_shaping]`, `[stage.termination]`, `[stage.monitor]`,
-//! `[stage.assist]` (and the optional keys `reward_params.waist_height_target`,
+//! `[stage.assist]`, `[stage.imitation]` (and the optional keys `reward_params.waist_height_target`,
 //! `reward_params.dof_pos_ref_band`, `reward_params.face_down_gate`,
 //! `reward_params.head_down_gate`, `ppo.max_action_std`, `ppo.action_noise_correlation`) are typed here only for their keys and
 //! types; their ranges and meaning are checked by Python (`jax_env/config.py`, `check_stage`),
@@ -82,6 +82,8 @@ pub struct StageTable {
     pub monitor: Option<Monitor>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub assist: Option<Assist>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub imitation: Option<Imitation>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -228,6 +230,20 @@ pub struct Assist {
     pub force: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub schedule: Option<Schedule>,
+}
+
+/// `[stage.imitation]`: PPO's loss also pulls the policy toward the stored get-up paths' plans
+/// in episodes started on them, weighted by a schedule (jax_env/config.py owns the semantics
+/// and the range checks; every key is optional).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Imitation {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub weight: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub schedule: Option<Schedule>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub forcing: Option<f64>,
 }
 
 /// `[stage.monitor]`: the deterministic-policy monitor run during training (jax_env/config.py

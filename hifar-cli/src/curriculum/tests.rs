@@ -238,7 +238,8 @@ fn tiny_with_new_keys() -> String {
          penalty_schedule = {{ by = \"env_steps\", points = [[0, 0.1], [1_000, 1.0]] }}\n\n\
          [stage.termination]\nlow_height = 0.2\nlow_height_s = 1.0\nupside_down = 0.5\nside_roll = 0.0\n\n\
          [stage.monitor]\nevery = 10\nepisodes = 4\nscenarios = [\"supine\", \"stand\", \"squat\"]\nkeep_best = true\n\n\
-         [stage.assist]\nforce = 150.0\nschedule = {{ by = \"stand_rate\", points = [[0, 1.0], [0.5, 0.0]] }}\n\n{rest}"
+         [stage.assist]\nforce = 150.0\nschedule = {{ by = \"stand_rate\", points = [[0, 1.0], [0.5, 0.0]] }}\n\n\
+         [stage.imitation]\nweight = 2.0\nforcing = 0.5\nschedule = {{ by = \"env_steps\", points = [[0, 1.0], [2_000, 0.0]] }}\n\n{rest}"
     )
 }
 
@@ -269,6 +270,10 @@ fn new_optional_keys_parse_and_reach_python_as_written() {
         stage["assist"],
         json!({"force": 150.0, "schedule": {"by": "stand_rate", "points": [[0.0, 1.0], [0.5, 0.0]]}})
     );
+    assert_eq!(
+        stage["imitation"],
+        json!({"weight": 2.0, "forcing": 0.5, "schedule": {"by": "env_steps", "points": [[0.0, 1.0], [2000.0, 0.0]]}})
+    );
     // A JSON round trip gives the same stage.
     let back: Stage = serde_json::from_value(stage.clone()).unwrap();
     assert_eq!(back.to_json(), stage);
@@ -280,7 +285,7 @@ fn new_optional_keys_parse_and_reach_python_as_written() {
     assert_eq!(stage["reward_shaping"].as_object().unwrap().keys().collect::<Vec<_>>(), ["penalty_schedule"]);
     assert_eq!(stage["monitor"].as_object().unwrap().keys().collect::<Vec<_>>(), ["every", "scenarios"]);
     let full = c.stages()[1].to_json();
-    for key in ["reward_shaping", "termination", "monitor", "assist"] {
+    for key in ["reward_shaping", "termination", "monitor", "assist", "imitation"] {
         assert!(full.get(key).is_none(), "{key} stays absent");
     }
     assert!(full["ppo"].get("max_action_std").is_none());
@@ -303,6 +308,7 @@ fn mistakes_in_the_new_tables_have_a_position() {
         ("[1_000, 1.0]]", "[1_000, 1.0, 2.0]]", "penalty_schedule", "invalid length 3, expected an array of two numbers [x, scale]"),
         ("points = [[0", "point = [[0", "penalty_schedule", "unknown key `point` in [stage.reward_shaping.penalty_schedule]; valid keys: `by` or `points`"),
         ("force = 150.0", "force = \"strong\"", "force = \"strong", "assist.force: invalid type: string \"strong\", expected a number"),
+        ("forcing = 0.5", "forcng = 0.5", "forcng", "unknown key `forcng` in [stage.imitation]"),
         ("max_action_std = 1.5", "max_action_std = \"big\"", "max_action_std", "ppo.max_action_std: invalid type: string \"big\", expected a number"),
         ("face_down_gate = [0.3, 0.6]", "face_down_gate = [0.3]", "face_down_gate", "invalid length 1, expected an array of two numbers [min, max]"),
         ("waist_height = 0.5", "waist_hieght = 0.5", "waist_hieght", "unknown reward term `waist_hieght` in [stage.rewards]"),
