@@ -51,9 +51,7 @@ def measure(num_envs: int = 1024, unroll_length: int = 20, num_minibatches: int 
       loc=jnp.zeros((t, b, cfg.action_size)),
       log_prob=jnp.full((t, b), -cfg.action_size * 1.4189),
       reward=jax.random.normal(ks[3], (t, b)), done=jnp.zeros((t, b)),
-      truncation=jnp.zeros((t, b)), active=jnp.ones((t, b)),
-      teacher=jnp.zeros((t, b, cfg.action_size)), teacher_mask=jnp.zeros((t, b)),
-      forced=jnp.zeros((t, b)))
+      truncation=jnp.zeros((t, b)), active=jnp.ones((t, b)))
   final_obs, final_priv = data.obs[-1], data.privileged[-1]
 
   update = jax.jit(lambda s, k: ppo_lib.ppo_update(

@@ -55,10 +55,10 @@ class Transition:
   truncation: jax.Array
   active: jax.Array  # 1 where the action took effect (not settling)
   # The stored get-up path's action for this state (env.teacher_action) and 1 where there is
-  # one (an episode started on a path, still within it); zeros without [stage.imitation].
-  teacher: jax.Array
-  teacher_mask: jax.Array
-  forced: jax.Array  # 1 where the plan's action was taken instead of the policy's
+  # one (an episode started on a path, still within it); None without [stage.imitation].
+  teacher: jax.Array | None = None
+  teacher_mask: jax.Array | None = None
+  forced: jax.Array | None = None  # 1 where the plan's action was taken instead of the policy's
 
 
 @struct.dataclass
@@ -136,13 +136,14 @@ def compute_targets(nets: nets_lib.Networks, params: dict, normalizer, data: Tra
 
 
 def ppo_loss(train_params: dict, normalizer, mb: dict, nets: nets_lib.Networks, cfg,
-             mirror_weight: float, maps, old_log_std: jax.Array, imitation_weight=0.0):
+             mirror_weight: float, maps, old_log_std: jax.Array, imitation_weight=None):
   """PPO loss on one minibatch of single transitions; returns (loss, metrics).
 
   mb: obs, privileged, action, loc, log_prob, target, advantage, weight (1 where the
   transition trains the policy: the action took effect and the step was not a truncation),
   teacher and teacher_weight (the path's action, and 1 where it applies and the action took
-  effect). imitation_weight: [stage.imitation]'s weight × its schedule's scale (traced).
+  effect). imitation_weight: [stage.imitation]'s weight × its schedule's scale (traced), or
+  None without [stage.imitation] (then the loss is computed exactly as before it existed).
   """
   pol = train_params["policy"]
   obs_n, priv_n = nets_lib.normalize(normalizer, mb["obs"], mb["privileged"])
@@ -180,12 +181,15 @@ def ppo_loss(train_params: dict, normalizer, mb: dict, nets: nets_lib.Networks, 
     sym = jax.lax.stop_gradient(sym)
     mirror_loss = jnp.zeros(())
 
-  # Kickstarting from the stored paths: the policy's mean toward the plan's action.
-  imitation_error = _weighted_mean(jnp.mean(jnp.square(loc - mb["teacher"]), axis=-1),
-                                   mb["teacher_weight"])
-  imitation_loss = imitation_weight * imitation_error
-
-  total = policy_loss + value_loss + entropy_loss + mirror_loss + imitation_loss
+  total = policy_loss + value_loss + entropy_loss + mirror_loss
+  if imitation_weight is None:
+    imitation_error = imitation_loss = jnp.zeros(())
+  else:
+    # Kickstarting from the stored paths: the policy's mean toward the plan's action.
+    imitation_error = _weighted_mean(jnp.mean(jnp.square(loc - mb["teacher"]), axis=-1),
+                                     mb["teacher_weight"])
+    imitation_loss = imitation_weight * imitation_error
+    total = total + imitation_loss
   kl = _weighted_mean(gaussian_kl(mb["loc"], old_log_std, jax.lax.stop_gradient(loc),
                                   jax.lax.stop_gradient(log_std)), w)
   metrics = {"total": total, "policy": policy_loss, "value": value_loss,
@@ -217,7 +221,7 @@ def bound_action_std(train_params: dict, max_action_std: float | None) -> dict:
 
 def ppo_update(state: LearnerState, data: Transition, final_obs, final_privileged,
                key: jax.Array, *, nets: nets_lib.Networks, cfg, mirror_weight: float, maps,
-               calibrate=None, axis_name: str | None = None, imitation_weight=0.0):
+               calibrate=None, axis_name: str | None = None, imitation_weight=None):
   """One PPO update on a rollout [T, B_local]; returns (state, metrics averaged).
   calibrate: per-feature masks for `networks.calibrate_normalizer` (the first iteration of a
   stage started from a checkpoint), or None."""
@@ -229,10 +233,13 @@ def ppo_update(state: LearnerState, data: Transition, final_obs, final_privilege
   samples = {
       "obs": data.obs, "privileged": data.privileged, "action": data.action, "loc": data.loc,
       "log_prob": data.log_prob, "target": targets, "advantage": advantages,
-      # A forced step's action is not the policy's sample: it trains only the imitation term.
-      "weight": data.active * (1.0 - data.truncation) * (1.0 - data.forced),
-      "teacher": data.teacher, "teacher_weight": data.teacher_mask * data.active,
+      "weight": data.active * (1.0 - data.truncation),
   }
+  if imitation_weight is not None:
+    # A forced step's action is not the policy's sample: it trains only the imitation term.
+    samples["weight"] = samples["weight"] * (1.0 - data.forced)
+    samples["teacher"] = data.teacher
+    samples["teacher_weight"] = data.teacher_mask * data.active
   samples = jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), samples)
   n = samples["obs"].shape[0]
   if n % cfg.num_minibatches:

@@ -326,8 +326,7 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
         forced = teacher_mask * es.teacher_forced * (schedules[2] > 0)
         action = jnp.where(forced[:, None] > 0, teacher + std * noise, action)
       else:
-        teacher, teacher_mask = jnp.zeros_like(loc), jnp.zeros_like(es.control_active)
-        forced = jnp.zeros_like(es.control_active)
+        teacher = teacher_mask = forced = None  # empty pytree leaves: the update is as before
       log_prob = dist.log_prob((loc, std), action)
       nxt = env.step(es, action)
       tr = ppo_lib.Transition(obs=es.obs, privileged=es.privileged, action=action, loc=loc,
@@ -344,7 +343,7 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
     learner, metrics = ppo_lib.ppo_update(
         learner, data, env_state.obs, env_state.privileged, k_update, nets=nets, cfg=ppo_cfg,
         mirror_weight=config.mirror_weight, maps=maps, calibrate=calibrate, axis_name=AXIS,
-        imitation_weight=schedules[2])
+        imitation_weight=schedules[2] if config.imitation is not None else None)
     return learner, env_state, history, metrics, scan_stats(stats)
 
   def adaptation_iteration(learner: ppo_lib.LearnerState, env_state, history, key,

@@ -119,6 +119,9 @@ def test_the_imitation_term_is_the_weighted_error_on_the_path_samples():
                             params["policy"]["log_std"], imitation_weight=weight)
 
   base, _ = loss(0.0)
+  off, metrics = loss(None)  # no [stage.imitation]: no term at all
+  assert float(off) == pytest.approx(float(base), rel=1e-6)
+  assert float(metrics["imitation_error"]) == 0.0
   total, metrics = loss(3.0)
   error = np.sum(np.mean(np.square(np.asarray(loc - teacher)), -1) * np.asarray(on)) / 16
   assert float(metrics["imitation_error"]) == pytest.approx(error, rel=1e-5)
