@@ -264,7 +264,8 @@ def _summarize(stats: Mapping[str, Any]) -> dict[str, Any]:
 
 def _with_schedules(env, env_state, schedules):
   """The env state with this iteration's schedule values, [penalty scale, assist force (N),
-  imitation weight] (the last is the learner's; an env without penalties or an assist ignores them)."""
+  imitation weight] (the last is the learner's; an env without penalties or an assist ignores
+  them)."""
   if hasattr(env, "with_penalty_scale"):
     env_state = env.with_penalty_scale(env_state, schedules[0])
   if hasattr(env, "with_assist_force"):
@@ -502,8 +503,8 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
       checkpoints_dir=Path(stage_dir) / "checkpoints", stage_config=stage_config,
       budgets=_Budgets(steps_per_iter=steps_per_iter, ppo=ppo_budget, adaptation=adapt_budget),
       steps={"ppo": ppo_iter, "adaptation": adapt_iter}, monitor=monitor, penalty=penalty,
-      assist=assist, imitation=imitation, callback=callback, log=log, progress=progress, learner=learner,
-      env_state=env_state, history=history, key=key, calibrate=calibrate)
+      assist=assist, imitation=imitation, callback=callback, log=log, progress=progress,
+      learner=learner, env_state=env_state, history=history, key=key, calibrate=calibrate)
   log(f"stage {config.stage_name}: {batch} envs on {n_dev} device(s), {steps_per_iter} env "
       f"steps per iteration, PPO budget {ppo_budget}, adaptation {adapt_budget}")
   return stage.run()
@@ -571,8 +572,7 @@ class _StageRun:
   def __init__(self, *, config: LearnerConfig, net_cfg, names, devices, batch: int, seed: int,
                checkpoints_dir: Path, stage_config, budgets: _Budgets, steps, monitor,
                penalty: ScheduleScale, assist: ScheduleScale, imitation: ScheduleScale,
-               callback, log,
-               progress: Progress, learner, env_state, history, key, calibrate):
+               callback, log, progress: Progress, learner, env_state, history, key, calibrate):
     self.config, self.net_cfg, self.names, self.seed = config, net_cfg, names, seed
     self.checkpoints_dir, self.stage_config = checkpoints_dir, stage_config
     self.budgets, self.steps, self.monitor, self.penalty = budgets, steps, monitor, penalty
