@@ -113,9 +113,8 @@ class EnvState:
   episode_return: jax.Array  # [B]
   rng: jax.Array  # [B] per-env PRNG keys
   # [B] int32 row of the stored path's plan for the current state of an episode that started on
-  # a get-up path (−1: none, or past the path's end), and the end of its rows (`teacher_action`).
+  # a get-up path (−1: none, or past the path's end; `teacher_action`).
   teacher_row: jax.Array
-  teacher_end: jax.Array
   teacher_forced: jax.Array  # [B] float 0/1: the episode acts with the plan ([stage.imitation])
 
 
@@ -224,7 +223,7 @@ class FallRecoveryEnv:
     mocap = jnp.broadcast_to(self.sampler.park, (batch, self.mj_model.nmocap, 3))
     settles = jnp.full((batch,), settle)
     none = jnp.full((batch,), -1, jnp.int32)
-    return self._start(keys, draw, qpos, qvel, mocap, none, settles, teacher=(none, none))
+    return self._start(keys, draw, qpos, qvel, mocap, none, settles, teacher_row=none)
 
   def _split(self, keys, n):
     out = jax.vmap(lambda k: jax.random.split(k, n))(keys)
@@ -242,10 +241,10 @@ class FallRecoveryEnv:
     draw = self._draw(k_draw, terrain)
     init = self.sampler.sample(k_scn, draw, scenario)
     return self._start(keys, draw, init.qpos, init.qvel, init.mocap_pos, init.scenario,
-                       init.settles, init.geom_lowest, (init.teacher_row, init.teacher_end))
+                       init.settles, init.geom_lowest, init.teacher_row)
 
   def _start(self, keys, draw, qpos, qvel, mocap, scenario, settles, geom_lowest=None,
-             teacher=None) -> EnvState:
+             teacher_row=None) -> EnvState:
     batch = qpos.shape[0]
     keys, k_push = self._split(keys, 2)
     qpos = qpos.astype(jnp.float32)
@@ -277,9 +276,8 @@ class FallRecoveryEnv:
         targets=jnp.broadcast_to(hold[:, None], (batch, self.target_history, hold.shape[-1])),
         hold_target=hold, last_action=zeros_a, prev_action=zeros_a, prev_qvel=qvel, push=push,
         push_active=jnp.zeros((batch,), bool), success=rewards_lib.success_init(batch),
-        episode_return=zeros, rng=keys, teacher_row=teacher[0].astype(jnp.int32),
-        teacher_end=teacher[1].astype(jnp.int32),
-        teacher_forced=self._teacher_forced(keys, teacher[0]))
+        episode_return=zeros, rng=keys, teacher_row=teacher_row.astype(jnp.int32),
+        teacher_forced=self._teacher_forced(keys, teacher_row))
 
   def _reset_view(self, qpos, qvel, geom_lowest) -> PhysicsView:
     batch = qpos.shape[0]
@@ -429,7 +427,6 @@ class FallRecoveryEnv:
     are offsets from the stand pose), the paths' control period, and every joint the path
     moves among the controlled ones (the others are held at the stand pose)."""
     sampler, s = self.sampler, self.stage
-    rows = [len(getup_paths.load()[n].qpos) for n in sampler.teacher_paths]
     controlled = set(s.controlled_joints)
     followable = [s.action.mapping == "default"
                   and abs(self.ctrl_dt - getup_paths.CTRL_DT) < 1e-9
@@ -437,7 +434,7 @@ class FallRecoveryEnv:
                   for n in sampler.teacher_paths]
     self.teacher_actions = (sampler.teacher[:, self.ctrl_idx] / s.action.scale
                             ).astype(np.float32)
-    self.teacher_ok = np.repeat(np.array(followable), rows)
+    self.teacher_ok = np.array(followable)[sampler.teacher_row_path]
 
   def _teacher_forced(self, keys, row) -> jax.Array:
     """[B] 1 for the share `forcing` of the path episodes (a draw of its own: fold_in leaves
@@ -446,8 +443,9 @@ class FallRecoveryEnv:
     return ((row >= 0) & (u < self.stage.imitation.forcing)).astype(jnp.float32)
 
   def _next_teacher_row(self, state: EnvState) -> jax.Array:
-    row = jnp.where(state.teacher_row >= 0, state.teacher_row + 1, -1)
-    return jnp.where(row < state.teacher_end, row, -1).astype(jnp.int32)
+    row = state.teacher_row
+    end = jnp.asarray(self.sampler.teacher_row_end)[jnp.maximum(row, 0)]
+    return jnp.where((row >= 0) & (row + 1 < end), row + 1, -1).astype(jnp.int32)
 
   def teacher_action(self, state: EnvState) -> tuple[jax.Array, jax.Array]:
     """([B, nA] the stored path's action for the current state, [B] 1 where there is one):

@@ -148,9 +148,8 @@ class InitialState:
   settles: jax.Array  # [B] bool: the episode starts with settle_s of settling
   geom_lowest: jax.Array  # [B, ngeom_robot] lowest z of each robot collision geom (Kinematics)
   # [B] int32 row of `ScenarioSampler.teacher` for the start state of a path scenario (the
-  # plan's targets there), −1 for every other scenario; and the end of its path's rows.
+  # plan's targets there), −1 for every other scenario.
   teacher_row: jax.Array
-  teacher_end: jax.Array
 
 
 @struct.dataclass
@@ -170,7 +169,6 @@ class _Pose:
   clearance: jax.Array  # []
   qvel: jax.Array | None = None  # [nv] before the random heading; None: at rest
   teacher_row: jax.Array | None = None  # [] int32 (see InitialState); None: −1
-  teacher_end: jax.Array | None = None
 
 
 class ScenarioSampler:
@@ -241,7 +239,7 @@ class ScenarioSampler:
       if p.qvel is None:
         p = p.replace(qvel=jnp.zeros(self.nv))
       if p.teacher_row is None:
-        p = p.replace(teacher_row=jnp.int32(-1), teacher_end=jnp.int32(-1))
+        p = p.replace(teacher_row=jnp.int32(-1))
       return p
     return pose
 
@@ -332,18 +330,19 @@ class ScenarioSampler:
                                      for n in rises]).astype(np.float32)
       self.teacher_paths = tuple(rises)
       starts = np.cumsum([0] + [lengths[n] for n in rises])
+      # Per row: the index of its path in `teacher_paths`, and the end of that path's rows.
+      self.teacher_row_path = np.repeat(np.arange(len(rises)), list(lengths.values()))
+      self.teacher_row_end = starts[1:][self.teacher_row_path].astype(np.int32)
       t_first = np.zeros(len(SCENARIOS), np.int32)
-      t_end = np.zeros(len(SCENARIOS), np.int32)
       for k, scenario_name in enumerate(PATH_SCENARIOS):
         t_first[SCENARIOS.index(scenario_name)] = starts[k]
-        t_end[SCENARIOS.index(scenario_name)] = starts[k + 1]
-      t_first, t_end = jnp.asarray(t_first), jnp.asarray(t_end)
+      t_first = jnp.asarray(t_first)
 
       def on_path(z, scenario):
         local = jnp.minimum((z.u[0] * count[scenario]).astype(jnp.int32), count[scenario] - 1)
         i = first[scenario] + local
         return _Pose(self._clip(qpos[i, 7:] + self.noise * z.normal), qpos[i, 3:7],
-                     clearance[i], qvel[i], t_first[scenario] + local, t_end[scenario])
+                     clearance[i], qvel[i], t_first[scenario] + local)
       return on_path
 
     if family in BRIDGES:
@@ -457,5 +456,4 @@ class ScenarioSampler:
                                                           jnp.asarray(OBSTACLE_PARK)))
     settles = jnp.asarray(self.settles)[scenario]
     return InitialState(qpos=qpos, qvel=qvel, mocap_pos=mocap, scenario=scenario,
-                        settles=settles, geom_lowest=low + lift, teacher_row=pose.teacher_row,
-                        teacher_end=pose.teacher_end)
+                        settles=settles, geom_lowest=low + lift, teacher_row=pose.teacher_row)

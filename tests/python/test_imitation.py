@@ -81,7 +81,8 @@ def test_path_episodes_carry_the_plans_action_step_by_step_until_the_path_ends(k
   alive = on_path & (np.asarray(nxt.done) == 0)
   np.testing.assert_array_equal(np.asarray(nxt.teacher_row)[alive], row0[alive] + 1)
   # Past its last stored state an episode has no plan left.
-  late = state.replace(teacher_row=state.teacher_end - 1)
+  ends = env.sampler.teacher_row_end[np.maximum(row0, 0)]
+  late = state.replace(teacher_row=jnp.where(jnp.asarray(row0) >= 0, jnp.asarray(ends) - 1, -1))
   assert np.all(np.asarray(env.teacher_action(step(late, zeros))[1]) == 0)
 
 
