@@ -535,12 +535,10 @@ class _Parser:
     p = ["assist"]
     d = self._section(d, "assist", (), ("force", "schedule"))
     force = self.number(d, "force", p, minimum=0.0, default=AssistConfig().force)
-    schedule = None
-    if d is not None and "schedule" in d:
-      schedule = self.penalty_schedule(d["schedule"], p + ["schedule"])
-      if schedule is None:
-        return None
-    return None if force is None else AssistConfig(force=force, schedule=schedule)
+    valid, schedule = self.optional_schedule(d, p)
+    if force is None or not valid:
+      return None
+    return AssistConfig(force=force, schedule=schedule)
 
   def imitation(self, d):
     p = ["imitation"]
@@ -548,14 +546,17 @@ class _Parser:
     weight = self.number(d, "weight", p, minimum=0.0, default=ImitationConfig().weight)
     forcing = self.number(d, "forcing", p, minimum=0.0, maximum=1.0,
                           default=ImitationConfig().forcing)
-    schedule = None
-    if d is not None and "schedule" in d:
-      schedule = self.penalty_schedule(d["schedule"], p + ["schedule"])
-      if schedule is None:
-        return None
-    if weight is None or forcing is None:
+    valid, schedule = self.optional_schedule(d, p)
+    if weight is None or forcing is None or not valid:
       return None
     return ImitationConfig(weight=weight, schedule=schedule, forcing=forcing)
+
+  def optional_schedule(self, d, p):
+    """A section's optional `schedule` (assist, imitation): (valid, the Schedule or None)."""
+    if d is None or "schedule" not in d:
+      return True, None
+    schedule = self.penalty_schedule(d["schedule"], p + ["schedule"])
+    return schedule is not None, schedule
 
   def monitor(self, d):
     p = ["monitor"]

@@ -4,9 +4,10 @@ PPO's own stand rate counts the episodes of the *stochastic* policy under domain
 and it can hold steady while the deterministic policy loses a get-up it had (hifar's run E in
 shared/reference/GETUP-RECIPES.md §4). Every `monitor.every` iterations the learner therefore
 runs `monitor.episodes` episodes from each monitored start scenario under nominal conditions
-(evaluation.conditions.evaluation_stage: no randomization, pushes or delay, flat ground, and no
-early terminations, so every episode runs its full length) with the mean action of the
-training-time policy, and reports per scenario: the stand rate (stable standing held for
+(evaluation.conditions.evaluation_stage: no randomization, pushes or delay, flat ground; the
+stage's terminations apply, as in `hifar eval`, so that a get-up through a terminated posture —
+head down past `termination.upside_down` — counts as the failure the evaluation will call it)
+with the mean action of the training-time policy, and reports per scenario: the stand rate (stable standing held for
 success.hold_s, the paper's criterion), the mean recovery time of the successes and the mean
 highest Trunk height.
 
@@ -52,14 +53,6 @@ class Monitor:
     return result
 
 
-def monitor_stage(stage: Mapping[str, Any]) -> dict:
-  """The stage table the monitor's environment is built from (nominal, no terminations)."""
-  from jax_env.evaluation.conditions import evaluation_stage
-  s = evaluation_stage(stage)
-  s.pop("termination", None)
-  return s
-
-
 def make_monitor(config: stage_config.MonitorConfig | None,
                  stage_table: Mapping[str, Any] | None, nets: nets_lib.Networks,
                  backend: str | None, seed_key: jax.Array) -> Monitor | None:
@@ -68,8 +61,9 @@ def make_monitor(config: stage_config.MonitorConfig | None,
   if config is None or config.every <= 0 or stage_table is None or backend is None:
     return None
   from jax_env.env import FallRecoveryEnv
+  from jax_env.evaluation.conditions import evaluation_stage
 
-  env = FallRecoveryEnv(monitor_stage(stage_table), backend=backend)
+  env = FallRecoveryEnv(evaluation_stage(stage_table), backend=backend)
   scenarios = tuple(config.scenarios)
   n = config.episodes
   forced = jnp.asarray(np.repeat([SCENARIOS.index(s) for s in scenarios], n),

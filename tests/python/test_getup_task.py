@@ -371,3 +371,20 @@ def test_monitor_reports_a_held_stand_as_standing():
   assert out["max_height"]["stand"] > 0.6 > out["max_height"]["supine"]
   assert out["mean_stand_rate"] == pytest.approx(0.5)
   assert monitor(params, normalizer) == out  # the same episodes every call
+
+
+def test_monitor_applies_the_stage_terminations_as_the_evaluation_does():
+  # A termination the held stand trips at once (Trunk "low" below 0.9 m for 0.1 s) ends every
+  # monitor episode before the 1 s hold: the monitor counts what `hifar eval` counts.
+  table = _stage(scenarios={"stand": 1.0})
+  table["sim"]["episode_s"] = 2.0
+  table["termination"] = {"low_height": 0.9, "low_height_s": 0.1}
+  stage = StageConfig.from_dict(table)
+  env = FallRecoveryEnv(stage, backend="native")
+  nets = nets_lib.Networks(train_lib.LearnerConfig.from_stage(stage).network_config(env))
+  params = nets.init(jax.random.PRNGKey(0))
+  params["policy"] = jax.tree_util.tree_map(jnp.zeros_like, params["policy"])
+  monitor = monitor_lib.make_monitor(
+      config.MonitorConfig(every=1, episodes=2, scenarios=("stand",)), table, nets, "native",
+      jax.random.PRNGKey(4))
+  assert monitor(params, nets_lib.init_normalizer(nets.config))["stand_rate"] == {"stand": 0.0}
