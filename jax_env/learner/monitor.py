@@ -7,9 +7,9 @@ runs `monitor.episodes` episodes from each monitored start scenario under nomina
 (evaluation.conditions.evaluation_stage: no randomization, pushes or delay, flat ground; the
 stage's terminations apply, as in `hifar eval`, so that a get-up through a terminated posture —
 head down past `termination.upside_down` — counts as the failure the evaluation will call it)
-with the mean action of the training-time policy, and reports per scenario: the stand rate (stable standing held for
-success.hold_s, the paper's criterion), the mean recovery time of the successes and the mean
-highest Trunk height.
+with the mean action of the training-time policy, and reports per scenario: the stand rate
+(stable standing held for success.hold_s, the paper's criterion), the mean recovery time of the
+successes and the mean highest Trunk height.
 
 The episodes' keys come from the stage seed alone (`MONITOR_SEED_SALT`), the same at every
 monitor call, so successive numbers differ only by the policy.

@@ -349,18 +349,22 @@ def test_keep_best_needs_the_monitor_on_and_a_boolean():
 # -- the deterministic monitor ------------------------------------------------------------------
 
 
+def _zero_output_policy(table):
+  """(networks, parameters, normalizer) of a stage's policy whose output layer is zero."""
+  stage = StageConfig.from_dict(table)
+  env = FallRecoveryEnv(stage, backend="native")
+  nets = nets_lib.Networks(train_lib.LearnerConfig.from_stage(stage).network_config(env))
+  params = nets.init(jax.random.PRNGKey(0))
+  params["policy"] = jax.tree_util.tree_map(jnp.zeros_like, params["policy"])
+  return nets, params, nets_lib.init_normalizer(nets.config)
+
+
 def test_monitor_reports_a_held_stand_as_standing():
   # With the "default" mapping a zero action holds the PD targets at `stand`: a policy whose
   # output layer is zero holds the robot standing, and lying does not get up by itself.
   table = _stage(scenarios={"stand": 0.5, "supine": 0.5})
   table["sim"]["episode_s"] = 2.0  # hold_s is 1 s
-  stage = StageConfig.from_dict(table)
-  lc = train_lib.LearnerConfig.from_stage(stage)
-  env = FallRecoveryEnv(stage, backend="native")
-  nets = nets_lib.Networks(lc.network_config(env))
-  params = nets.init(jax.random.PRNGKey(0))
-  params["policy"] = jax.tree_util.tree_map(jnp.zeros_like, params["policy"])
-  normalizer = nets_lib.init_normalizer(nets.config)
+  nets, params, normalizer = _zero_output_policy(table)
   monitor = monitor_lib.make_monitor(
       config.MonitorConfig(every=1, episodes=2, scenarios=("stand", "supine")), table, nets,
       "native", jax.random.PRNGKey(4))
@@ -379,12 +383,8 @@ def test_monitor_applies_the_stage_terminations_as_the_evaluation_does():
   table = _stage(scenarios={"stand": 1.0})
   table["sim"]["episode_s"] = 2.0
   table["termination"] = {"low_height": 0.9, "low_height_s": 0.1}
-  stage = StageConfig.from_dict(table)
-  env = FallRecoveryEnv(stage, backend="native")
-  nets = nets_lib.Networks(train_lib.LearnerConfig.from_stage(stage).network_config(env))
-  params = nets.init(jax.random.PRNGKey(0))
-  params["policy"] = jax.tree_util.tree_map(jnp.zeros_like, params["policy"])
+  nets, params, normalizer = _zero_output_policy(table)
   monitor = monitor_lib.make_monitor(
       config.MonitorConfig(every=1, episodes=2, scenarios=("stand",)), table, nets, "native",
       jax.random.PRNGKey(4))
-  assert monitor(params, nets_lib.init_normalizer(nets.config))["stand_rate"] == {"stand": 0.0}
+  assert monitor(params, normalizer)["stand_rate"] == {"stand": 0.0}
