@@ -464,6 +464,9 @@ class FallRecoveryEnv:
     terminated = low_steps > self.low_height_steps
     if t.upside_down > 0:
       terminated |= active & (x.gravity[:, 2] > t.upside_down)
+    if t.upside_down_face_down > 0:
+      face_down = x.gravity[:, 0] > 0  # the chest (Trunk +x) toward the floor
+      terminated |= active & face_down & (x.gravity[:, 2] > t.upside_down_face_down)
     if t.side_roll > 0:
       terminated |= active & (jnp.abs(x.gravity[:, 1]) > t.side_roll)
     return low_steps, terminated

@@ -125,6 +125,10 @@ class TerminationConfig:
   low_height: float = 0.0  # Trunk below this (m) ...
   low_height_s: float = 2.0  # ... for longer than this (s) ends the episode
   upside_down: float = 0.0  # projected gravity z above this (head down) ends it
+  # ... and above this with the chest toward the floor (projected gravity x > 0): a head-first
+  # dive from the kneel, apart from the supine get-up's rock-back onto the shoulders (face up),
+  # which reaches the same g_z
+  upside_down_face_down: float = 0.0
   side_roll: float = 0.0  # |projected gravity y| above this (lying on a side) ends it
 
 

@@ -79,6 +79,12 @@ pub struct TrainArgs {
     /// Continue the run in --run-dir from its last checkpoint.
     #[arg(long, requires = "run_dir", conflicts_with = "force")]
     pub resume: bool,
+    /// Start a new run with the leading stages of RUN: each completed stage whose resolved
+    /// settings equal this curriculum's (same seed, backend and --num-envs) is copied, in
+    /// order, and training starts at the first that differs. Seed, backend and --num-envs
+    /// default to RUN's.
+    #[arg(long, value_name = "RUN", conflicts_with = "resume")]
+    pub reuse_stages_from: Option<PathBuf>,
     /// Delete an existing run directory and start over.
     #[arg(long)]
     pub force: bool,

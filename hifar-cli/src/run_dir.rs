@@ -30,10 +30,24 @@ pub const LOG: &str = "hifar.log";
 pub const METRICS: &str = "metrics.jsonl";
 const LOCK: &str = ".lock";
 
-/// A run directory held with its exclusive lock (released when dropped).
-pub struct RunDir {
+/// Where things are in a run directory (no lock: reading another run's finished stages).
+pub struct RunLayout {
     path: PathBuf,
+}
+
+/// A run directory held with its exclusive lock (released when dropped); its layout through
+/// `Deref`.
+pub struct RunDir {
+    layout: RunLayout,
     _lock: File,
+}
+
+impl std::ops::Deref for RunDir {
+    type Target = RunLayout;
+
+    fn deref(&self) -> &RunLayout {
+        &self.layout
+    }
 }
 
 impl RunDir {
@@ -71,7 +85,7 @@ impl RunDir {
             Err(err) => return Err(err).with_context(|| format!("cannot create {}", path.display())),
         }
         let lock = lock(path)?;
-        Ok(RunDir { path: path.to_path_buf(), _lock: lock })
+        Ok(RunDir { layout: RunLayout::new(path), _lock: lock })
     }
 
     /// Opens an existing run directory (for `--resume`).
@@ -83,7 +97,28 @@ impl RunDir {
             ));
         }
         let lock = lock(path)?;
-        Ok(RunDir { path: path.to_path_buf(), _lock: lock })
+        Ok(RunDir { layout: RunLayout::new(path), _lock: lock })
+    }
+
+    pub fn write_manifest(&self, manifest: &Manifest) -> Result<()> {
+        let mut text = serde_json::to_string_pretty(manifest)?;
+        text.push('\n');
+        let path = self.path.join(MANIFEST);
+        crate::atomic::write_file_atomic(&path, text.as_bytes())
+            .with_context(|| format!("cannot write {}", path.display()))
+    }
+
+    /// Appends a timestamped line to `hifar.log`.
+    pub fn log(&self, line: &str) {
+        if let Ok(mut file) = OpenOptions::new().create(true).append(true).open(self.log_path()) {
+            let _ = writeln!(file, "[{}] {line}", now_rfc3339());
+        }
+    }
+}
+
+impl RunLayout {
+    pub fn new(path: &Path) -> RunLayout {
+        RunLayout { path: path.to_path_buf() }
     }
 
     pub fn path(&self) -> &Path {
@@ -113,21 +148,6 @@ impl RunDir {
 
     pub fn read_manifest(&self) -> Result<Manifest> {
         Manifest::read(&self.path)
-    }
-
-    pub fn write_manifest(&self, manifest: &Manifest) -> Result<()> {
-        let mut text = serde_json::to_string_pretty(manifest)?;
-        text.push('\n');
-        let path = self.path.join(MANIFEST);
-        crate::atomic::write_file_atomic(&path, text.as_bytes())
-            .with_context(|| format!("cannot write {}", path.display()))
-    }
-
-    /// Appends a timestamped line to `hifar.log`.
-    pub fn log(&self, line: &str) {
-        if let Ok(mut file) = OpenOptions::new().create(true).append(true).open(self.log_path()) {
-            let _ = writeln!(file, "[{}] {line}", now_rfc3339());
-        }
     }
 }
 
@@ -240,6 +260,9 @@ pub struct StageRecord {
     pub best_stand_rate: Option<f64>,
     pub started_at: Option<String>,
     pub ended_at: Option<String>,
+    /// The run this stage was copied from (`hifar train --reuse-stages-from`), if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reused_from: Option<String>,
 }
 
 impl Manifest {

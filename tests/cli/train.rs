@@ -316,3 +316,88 @@ pub fn copy_dir(from: &Path, to: &Path) {
         }
     }
 }
+
+/// tiny.toml with one setting of stage `full` changed (its torque limits).
+fn tiny_with_other_full_stage(dir: &Path) -> PathBuf {
+    let text = std::fs::read_to_string(data(TINY)).unwrap();
+    assert_eq!(text.matches("torque_limit_scale = 1.0").count(), 1, "tiny.toml's full stage sets 1.0");
+    let path = dir.join("tiny_other_full.toml");
+    std::fs::write(&path, text.replace("torque_limit_scale = 1.0", "torque_limit_scale = 0.9")).unwrap();
+    path
+}
+
+#[test]
+fn a_new_run_reuses_the_matching_leading_stages_of_another_run() {
+    let reference = reference_run();
+    let dir = tempdir();
+    let run = dir.path().join("reusing");
+    let curriculum = tiny_with_other_full_stage(dir.path());
+    // Seed and backend come from the reused run.
+    let out = hifar(dir.path())
+        .args(["train", curriculum.to_str().unwrap(), "--reuse-stages-from"])
+        .arg(&reference.run)
+        .arg("--run-dir")
+        .arg(&run)
+        .timeout(Duration::from_secs(1200))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(0), "{}\n{}", stderr(&out), log_tail(&run));
+    let manifest = read_json(&run.join("manifest.json"));
+    let expected = read_json(&reference.run.join("manifest.json"));
+    assert_eq!(manifest["status"], "completed");
+    assert_eq!(manifest["seed"], expected["seed"]);
+    let (planar, full) = (&manifest["stages"][0], &manifest["stages"][1]);
+    let (reference_planar, reference_full) = (&expected["stages"][0], &expected["stages"][1]);
+    // The planar stage is the reference's, copied: record, checkpoint, metrics lines, events.
+    assert_eq!(planar["reused_from"], reference.run.to_str().unwrap());
+    for key in ["status", "seed", "final_checkpoint", "env_steps", "started_at", "ended_at"] {
+        assert_eq!(planar[key], reference_planar[key], "{key}");
+    }
+    let checkpoint = |run: &Path, stage: &Value, key: &str| run.join(stage[key].as_str().unwrap()).join("params.safetensors");
+    assert_same_tensors(&checkpoint(&run, planar, "final_checkpoint"), &checkpoint(&reference.run, reference_planar, "final_checkpoint"));
+    let planar_lines = |run: &Path| -> Vec<String> {
+        let text = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+        text.lines().filter(|l| l.contains("\"stage\":\"planar\"")).map(str::to_owned).collect()
+    };
+    assert!(!planar_lines(&run).is_empty());
+    assert_eq!(planar_lines(&run), planar_lines(&reference.run));
+    assert!(run.join("tensorboard").join("planar").is_dir());
+    // The full stage is trained anew, from the same expanded planar checkpoint.
+    assert!(full.get("reused_from").is_none(), "{full}");
+    assert_eq!(full["status"], reference_full["status"]);
+    assert_same_tensors(&checkpoint(&run, full, "init_checkpoint"), &checkpoint(&reference.run, reference_full, "init_checkpoint"));
+    assert!(run.join(full["final_checkpoint"].as_str().unwrap()).join("params.safetensors").is_file());
+    assert!(std::fs::read_to_string(run.join("hifar.log")).unwrap().contains("stage planar: reused from"));
+}
+
+#[test]
+fn reuse_is_refused_before_a_run_directory_exists_when_nothing_or_everything_matches() {
+    let reference = reference_run();
+    let dir = tempdir();
+    let run = dir.path().join("r");
+    let refused = |curriculum: &Path, extra: &[&str]| {
+        let out = hifar(dir.path())
+            .args(["train", curriculum.to_str().unwrap(), "--reuse-stages-from"])
+            .arg(&reference.run)
+            .args(extra)
+            .arg("--run-dir")
+            .arg(&run)
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(2), "{}", stderr(&out));
+        assert!(!run.exists());
+        stderr(&out)
+    };
+    // Another seed: no stage would train the same.
+    let message = refused(&data(TINY), &["--seed", "12"]);
+    assert!(message.contains("no stage of") && message.contains("seed 11") && message.contains("seed 12"), "{message}");
+    // The same curriculum: every stage matches, there is nothing to train.
+    let message = refused(&data(TINY), &[]);
+    assert!(message.contains("nothing would be trained"), "{message}");
+    // Another planar stage: its first stage differs.
+    let text = std::fs::read_to_string(data(TINY)).unwrap().replacen("torque_limit_scale = 1.5", "torque_limit_scale = 1.4", 1);
+    let other = dir.path().join("other_planar.toml");
+    std::fs::write(&other, text).unwrap();
+    let message = refused(&other, &[]);
+    assert!(message.contains("stage 1 (planar) has other settings"), "{message}");
+}

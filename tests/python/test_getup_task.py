@@ -18,7 +18,7 @@ from jax_env.config import StageConfig
 from jax_env.defaults import default_stage_dict
 from jax_env.names import SCENARIOS
 from jax_env.env import FallRecoveryEnv
-from jax_env.kinematics import axis_angle_quat
+from jax_env.kinematics import axis_angle_quat, rotate_inverse
 from jax_env.learner import monitor as monitor_lib
 from jax_env.learner import networks as nets_lib
 from jax_env.learner import ppo as ppo_lib
@@ -206,6 +206,20 @@ def test_terminations_end_episodes_without_bootstrap():
   # Without the termination table nothing ends early.
   plain = FallRecoveryEnv(_stage(), backend="native")
   assert all(d == 0.0 for d, _ in _run(plain, _reset_to_pose(plain, supine, 0.15), 6))
+
+
+def test_face_down_limit_ends_the_head_first_dive_not_the_rock_back():
+  # Head down at 30° from vertical: chest toward the floor (a dive from the kneel, g_x = +0.5)
+  # or toward the sky (the supine get-up's rock-back onto the shoulders, g_x = -0.5); g_z 0.87.
+  term = {"upside_down": 0.9, "upside_down_face_down": 0.8}
+  env = FallRecoveryEnv(_stage(termination=term), backend="native")
+  y = jnp.asarray([0.0, 1.0, 0.0], jnp.float32)
+  dive_quat, rock_back_quat = (axis_angle_quat(y, s * math.pi * 5 / 6) for s in (1, -1))
+  down = jnp.asarray([0.0, 0.0, -1.0])
+  assert np.allclose(rotate_inverse(dive_quat, down), [0.5, 0.0, 0.866], atol=1e-3)
+  assert np.allclose(rotate_inverse(rock_back_quat, down), [-0.5, 0.0, 0.866], atol=1e-3)
+  assert _run(env, _reset_to_pose(env, dive_quat, 0.5), 1) == [(1.0, 0.0)]
+  assert _run(env, _reset_to_pose(env, rock_back_quat, 0.5), 1) == [(0.0, 0.0)]
 
 
 def test_staggered_clocks_end_first_episodes_at_different_steps(upright_env):

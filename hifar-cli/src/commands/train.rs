@@ -27,7 +27,7 @@ use crate::names::AUTO_BACKEND;
 use crate::python::Facade;
 use crate::terminal::{Capture, Console};
 use crate::run_dir::{
-    self, host_name, now_rfc3339, stage_seed, unix_time, CurriculumRecord, Manifest, RunDir, Session,
+    self, host_name, now_rfc3339, stage_seed, unix_time, CurriculumRecord, Manifest, RunDir, RunLayout, Session,
     StageRecord, Status, CURRICULUM_COPY,
 };
 use crate::ui::group_digits;
@@ -68,22 +68,22 @@ pub fn run(args: &TrainArgs) -> Result<()> {
     let curriculum_path = paths::absolute(args.curriculum.clone());
     let mut curriculum = curriculum::load(&args.curriculum)?;
 
-    // 2. Resume: the run directory's manifest supplies the settings the flags do not.
+    // 2. Resume, or reuse another run's stages: that run's manifest supplies the settings the
+    //    flags do not.
     let resume_manifest = if args.resume {
         let dir = args.run_dir.as_ref().expect("clap requires --run-dir with --resume");
-        Some(Manifest::read(dir).map_err(|err| {
-            if dir.join(run_dir::MANIFEST).exists() {
-                err
-            } else {
-                bad_input!("{} is not a run directory (no manifest.json); nothing to resume", dir.display())
-            }
-        })?)
+        Some(read_run_manifest(dir, "nothing to resume")?)
     } else {
         None
     };
-    let seed = args.seed.or(resume_manifest.as_ref().map(|m| m.seed));
-    let num_envs = args.num_envs.or(resume_manifest.as_ref().and_then(|m| m.num_envs));
-    let backend_flag = args.backend.clone().or(resume_manifest.as_ref().map(|m| m.backend.clone()));
+    let reuse_source = match &args.reuse_stages_from {
+        Some(dir) => Some((paths::absolute(dir.clone()), read_run_manifest(dir, "no stages to reuse")?)),
+        None => None,
+    };
+    let inherited = resume_manifest.as_ref().or(reuse_source.as_ref().map(|(_, m)| m));
+    let seed = args.seed.or(inherited.map(|m| m.seed));
+    let num_envs = args.num_envs.or(inherited.and_then(|m| m.num_envs));
+    let backend_flag = args.backend.clone().or(inherited.map(|m| m.backend.clone()));
     curriculum
         .apply_overrides(seed, backend_flag.as_deref(), num_envs)
         .map_err(|err| anyhow::Error::new(BadInput(err.to_string())))?;
@@ -91,8 +91,12 @@ pub fn run(args: &TrainArgs) -> Result<()> {
     // 3. Python: names and feature layouts, and the backend "auto" resolves to.
     let facade = setup::ensure_python()?;
     check::check_with_python(&facade, &curriculum, None)?;
-    let (backend, backend_reason) = resolve_backend(&facade, &curriculum, args, resume_manifest.as_ref())?;
+    let (backend, backend_reason) = resolve_backend(&facade, &curriculum, args, inherited)?;
     let plan = make_plan(curriculum_path, curriculum, backend, backend_reason, num_envs)?;
+    let reuse = match &reuse_source {
+        Some((dir, source)) => Some(reusable_stages(dir, source, &plan)?),
+        None => None,
+    };
 
     // 4. The run directory.
     let run_path = paths::absolute(match &args.run_dir {
@@ -133,6 +137,9 @@ pub fn run(args: &TrainArgs) -> Result<()> {
         plan.backend,
         plan.backend_reason
     ));
+    if let Some(reuse) = &reuse {
+        copy_reused_stages(&run, &mut manifest, reuse)?;
+    }
     eprintln!(
         "run {}  (seed {}, backend {}: {}; log {})",
         run.path().display(),
@@ -229,13 +236,14 @@ fn resolve_backend(
     facade: &Facade,
     curriculum: &Curriculum,
     args: &TrainArgs,
-    resumed: Option<&Manifest>,
+    inherited: Option<&Manifest>,
 ) -> Result<(String, String)> {
     if let Some(flag) = &args.backend {
         return Ok((flag.clone(), "--backend".into()));
     }
-    if let Some(manifest) = resumed {
-        return Ok((manifest.backend.clone(), format!("as when the run started ({})", manifest.backend_reason)));
+    if let Some(manifest) = inherited {
+        let when = if args.resume { "as when the run started" } else { "as in the run whose stages are reused" };
+        return Ok((manifest.backend.clone(), format!("{when} ({})", manifest.backend_reason)));
     }
     let configured = curriculum.backend();
     if configured != AUTO_BACKEND {
@@ -290,11 +298,135 @@ fn new_manifest(run: &RunDir, plan: &Plan, facade: &Facade) -> Result<Manifest> 
                 best_stand_rate: None,
                 started_at: None,
                 ended_at: None,
+                reused_from: None,
             })
             .collect(),
     };
     run.write_manifest(&manifest)?;
     Ok(manifest)
+}
+
+/// The manifest of an existing run directory; `purpose` ends the error for a directory without one.
+fn read_run_manifest(dir: &Path, purpose: &str) -> Result<Manifest> {
+    Manifest::read(dir).map_err(|err| {
+        if dir.join(run_dir::MANIFEST).exists() {
+            err
+        } else {
+            bad_input!("{} is not a run directory (no manifest.json); {purpose}", dir.display())
+        }
+    })
+}
+
+/// The leading stages a new run takes from another run (`--reuse-stages-from`).
+struct Reuse {
+    source: PathBuf,
+    records: Vec<StageRecord>,
+}
+
+/// The longest prefix of `source`'s stages that this plan would train identically: completed,
+/// with the same resolved stage table, seed, backend and num_envs. None is an error: the user
+/// asked to reuse, and training everything anew would be a silent surprise.
+fn reusable_stages(dir: &Path, source: &Manifest, plan: &Plan) -> Result<Reuse> {
+    let nothing = |why: String| bad_input!("no stage of {} can be reused: {why}", dir.display());
+    if source.seed != plan.seed || source.backend != plan.backend || source.num_envs != plan.num_envs {
+        return Err(nothing(format!(
+            "it was trained with seed {}, backend {}, {}; this run would use seed {}, backend {}, {}",
+            source.seed,
+            source.backend,
+            num_envs_text(source.num_envs),
+            plan.seed,
+            plan.backend,
+            num_envs_text(plan.num_envs)
+        )));
+    }
+    let ours = plan.curriculum.resolved_json();
+    let mut records = Vec::new();
+    let mut stop = None;
+    for (index, stage) in plan.stages.iter().enumerate() {
+        let Some(record) = source.stages.get(index) else {
+            stop = Some(format!("it has no stage {}", index + 1));
+            break;
+        };
+        let done = matches!(record.status, Status::Completed | Status::ThresholdMissed) && record.final_checkpoint.is_some();
+        if record.name != stage.name || source.curriculum.resolved["stage"][index] != ours["stage"][index] {
+            stop = Some(format!("its stage {} ({}) has other settings than this curriculum's {}", index + 1, record.name, stage.name));
+            break;
+        }
+        if !done {
+            stop = Some(format!("its stage {} ({}) is {}", index + 1, record.name, record.status));
+            break;
+        }
+        records.push(record.clone());
+    }
+    if records.is_empty() {
+        return Err(nothing(stop.unwrap_or_default()));
+    }
+    if records.len() == plan.stages.len() {
+        return Err(bad_input!(
+            "every stage of {} has this curriculum's settings: nothing would be trained (copy the run directory instead)",
+            dir.display()
+        ));
+    }
+    Ok(Reuse { source: dir.to_owned(), records })
+}
+
+fn num_envs_text(num_envs: Option<u32>) -> String {
+    num_envs.map(|n| format!("--num-envs {n}")).unwrap_or_else(|| "the curriculum's num_envs".into())
+}
+
+/// Copies the reused stages into a new run: each stage directory and its TensorBoard events
+/// (atomically, directory by directory), their metrics lines, then their manifest records.
+fn copy_reused_stages(run: &RunDir, manifest: &mut Manifest, reuse: &Reuse) -> Result<()> {
+    let source = RunLayout::new(&reuse.source);
+    for record in &reuse.records {
+        for (from, to) in [
+            (source.stage_dir(&record.name), run.stage_dir(&record.name)),
+            (source.tensorboard_dir(&record.name), run.tensorboard_dir(&record.name)),
+        ] {
+            if from.is_dir() {
+                crate::atomic::write_dir_atomic(&to, crate::atomic::IfExists::Replace, |temp| copy_tree(&from, temp))
+                    .with_context(|| format!("cannot copy {} to {}", from.display(), to.display()))?;
+            }
+        }
+    }
+    let names: Vec<&str> = reuse.records.iter().map(|r| r.name.as_str()).collect();
+    let lines = metrics::read_jsonl(&source.metrics_path())
+        .with_context(|| format!("cannot read {}", source.metrics_path().display()))?;
+    let mut text = String::new();
+    for line in lines.iter().filter(|l| l.get("stage").and_then(Value::as_str).is_some_and(|s| names.contains(&s))) {
+        text.push_str(&serde_json::to_string(line)?);
+        text.push('\n');
+    }
+    crate::atomic::write_file_atomic(&run.metrics_path(), text.as_bytes())
+        .with_context(|| format!("cannot write {}", run.metrics_path().display()))?;
+    for (index, record) in reuse.records.iter().enumerate() {
+        manifest.stages[index] = StageRecord { reused_from: Some(reuse.source.to_string_lossy().into_owned()), ..record.clone() };
+        run.log(&format!(
+            "stage {}: reused from {} ({}, {} env steps, final checkpoint {})",
+            record.name,
+            reuse.source.display(),
+            record.status,
+            record.env_steps.map(group_digits).unwrap_or_else(|| "?".into()),
+            record.final_checkpoint.as_deref().unwrap_or("?")
+        ));
+    }
+    run.write_manifest(manifest)?;
+    Ok(())
+}
+
+/// Copies the regular files and directories under `from` into the existing directory `to`.
+fn copy_tree(from: &Path, to: &Path) -> std::io::Result<()> {
+    for entry in std::fs::read_dir(from)? {
+        let entry = entry?;
+        let target = to.join(entry.file_name());
+        if entry.file_type()?.is_dir() {
+            std::fs::create_dir(&target)?;
+            copy_tree(&entry.path(), &target)?;
+        } else {
+            std::fs::copy(entry.path(), &target)?;
+        }
+    }
+    Ok(())
 }
 
 /// The manifest of a run being resumed, after checking that it is the same experiment.
