@@ -339,7 +339,6 @@ fn reusable_stages(dir: &Path, source: &Manifest, plan: &Plan) -> Result<Reuse> 
             num_envs_text(plan.num_envs)
         )));
     }
-    let ours = plan.curriculum.resolved_json();
     let mut records = Vec::new();
     let mut stop = None;
     for (index, stage) in plan.stages.iter().enumerate() {
@@ -348,7 +347,7 @@ fn reusable_stages(dir: &Path, source: &Manifest, plan: &Plan) -> Result<Reuse> 
             break;
         };
         let done = matches!(record.status, Status::Completed | Status::ThresholdMissed) && record.final_checkpoint.is_some();
-        if record.name != stage.name || source.curriculum.resolved["stage"][index] != ours["stage"][index] {
+        if record.name != stage.name || source.curriculum.resolved["stage"][index] != stage.json {
             stop = Some(format!("its stage {} ({}) has other settings than this curriculum's {}", index + 1, record.name, stage.name));
             break;
         }
