@@ -368,6 +368,8 @@ fn a_new_run_reuses_the_matching_leading_stages_of_another_run() {
     assert_same_tensors(&checkpoint(&run, full, "init_checkpoint"), &checkpoint(&reference.run, reference_full, "init_checkpoint"));
     assert!(run.join(full["final_checkpoint"].as_str().unwrap()).join("params.safetensors").is_file());
     assert!(std::fs::read_to_string(run.join("hifar.log")).unwrap().contains("stage planar: reused from"));
+    let shown = hifar(dir.path()).args(["runs", "show"]).arg(&run).output().unwrap();
+    assert!(crate::common::stdout(&shown).contains("reused        stage planar from"), "{}", crate::common::stdout(&shown));
 }
 
 #[test]

@@ -140,6 +140,11 @@ fn show(run: &Path) -> Result<()> {
         let line: Vec<String> = versions.iter().map(|(k, v)| format!("{k} {}", v.as_str().unwrap_or(&v.to_string()))).collect();
         println!("versions      {}", line.join(", "));
     }
+    for stage in &manifest.stages {
+        if let Some(source) = &stage.reused_from {
+            println!("reused        stage {} from {source}", stage.name);
+        }
+    }
     println!();
     let rows: Vec<[String; 7]> = manifest
         .stages
