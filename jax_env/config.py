@@ -517,14 +517,15 @@ class _Parser:
 
   def termination(self, d):
     p = ["termination"]
-    keys = ("low_height", "low_height_s", "upside_down", "upside_down_face_down", "side_roll")
+    gravity_limits = ("upside_down", "upside_down_face_down", "side_roll")  # components, ≤ 1
+    keys = ("low_height", "low_height_s") + gravity_limits
     d = self._section(d, "termination", (), keys)
     default = TerminationConfig()
     values = {k: self.number(d, k, p, minimum=0.0, default=getattr(default, k)) for k in keys}
     if values["low_height_s"] is not None and values["low_height_s"] <= 0:
       self.err(p + ["low_height_s"], f"{values['low_height_s']!r} must be > 0")
       values["low_height_s"] = None
-    for k in ("upside_down", "upside_down_face_down", "side_roll"):
+    for k in gravity_limits:
       if values[k] is not None and values[k] > 1.0:
         self.err(p + [k], f"{values[k]!r} must be <= 1 (a component of the unit gravity "
                  "vector; 0 disables)")
