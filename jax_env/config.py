@@ -675,7 +675,7 @@ class _Parser:
     unit = ("discount", "gae_lambda")
     d = self._section(d, "ppo", ints + pos + nonneg + unit + (
         "lr_schedule", "normalize_observations", "policy_hidden", "value_hidden", "activation"),
-        ("max_action_std", "action_noise_correlation"))
+        ("max_action_std", "action_std_schedule", "action_noise_correlation"))
     v = {k: self.number(d, k, p, minimum=0, exclusive=True, integer=True) for k in ints}
     if v["num_envs"] is not None and v["num_minibatches"] is not None:
       if v["num_envs"] % v["num_minibatches"]:
@@ -700,6 +700,8 @@ class _Parser:
                  f"action_noise_correlation {rho!r} must be below 1")
         rho = None
       ppo = None if rho is None else dataclasses.replace(ppo, action_noise_correlation=rho)
+    if ppo is not None and d is not None and "action_std_schedule" in d:
+      ppo = self.action_std_schedule(d, p, ppo)
     if ppo is None or d is None or "max_action_std" not in d:
       return ppo
     bound = self.number(d, "max_action_std", p, minimum=0.0, exclusive=True)
@@ -708,6 +710,23 @@ class _Parser:
                f"initial_action_std {ppo.initial_action_std!r}")
       bound = None
     return None if bound is None else dataclasses.replace(ppo, max_action_std=bound)
+
+  def action_std_schedule(self, d, p, ppo):
+    """`action_std_schedule`: a penalty-style schedule whose scales, in (0, 1], multiply
+    `max_action_std` (which it needs: it tightens a bound, it does not make one)."""
+    at = p + ["action_std_schedule"]
+    schedule = self.penalty_schedule(d["action_std_schedule"], at)
+    if schedule is None:
+      return None
+    if "max_action_std" not in d:
+      self.err(at, "action_std_schedule scales max_action_std, which is not set")
+      return None
+    for i, (_, s) in enumerate(schedule.points):
+      if not 0.0 < s <= 1.0:
+        self.err(at + ["points", i], f"scale {s!r} must be in (0, 1]: the schedule tightens "
+                 "max_action_std")
+        return None
+    return dataclasses.replace(ppo, action_std_schedule=schedule)
 
   def rma(self, d):
     p = ["rma"]

@@ -238,6 +238,10 @@ class PPOConfig:
   initial_action_std: float
   checkpoint_every: int
   max_action_std: float | None = None  # the policy's std is kept at or below this
+  # A scale (0, 1] of max_action_std over the stage (by env steps or stand rate; a ratchet
+  # that only tightens): explore widely first, then train the policy that is deployed, its
+  # mean, with little noise (README, "The deterministic gap"). None: the bound is constant.
+  action_std_schedule: Schedule | None = None
   # ρ of the AR(1) exploration noise per control step (0: white noise, brax's sampling).
   action_noise_correlation: float = 0.0
 

@@ -221,10 +221,14 @@ def bound_action_std(train_params: dict, max_action_std: float | None) -> dict:
 
 def ppo_update(state: LearnerState, data: Transition, final_obs, final_privileged,
                key: jax.Array, *, nets: nets_lib.Networks, cfg, mirror_weight: float, maps,
-               calibrate=None, axis_name: str | None = None, imitation_weight=None):
+               calibrate=None, axis_name: str | None = None, imitation_weight=None,
+               max_action_std=None):
   """One PPO update on a rollout [T, B_local]; returns (state, metrics averaged).
   calibrate: per-feature masks for `networks.calibrate_normalizer` (the first iteration of a
-  stage started from a checkpoint), or None."""
+  stage started from a checkpoint), or None. max_action_std: this iteration's bound on the
+  std (a traced scalar where a schedule moves it); None: cfg.max_action_std."""
+  if max_action_std is None:
+    max_action_std = cfg.max_action_std
   params = state.params
   normalizer = state.normalizer
   targets, advantages = compute_targets(nets, params, normalizer, data, final_obs,
@@ -261,7 +265,7 @@ def ppo_update(state: LearnerState, data: Transition, final_obs, final_privilege
     updates, opt_state = optimizer.update(grads, opt_state)
     train_params = optax.apply_updates(
         train_params, jax.tree_util.tree_map(lambda u: -lr * u, updates))
-    train_params = bound_action_std(train_params, cfg.max_action_std)
+    train_params = bound_action_std(train_params, max_action_std)
     metrics["learning_rate"] = lr
     return (train_params, opt_state, lr), metrics
 

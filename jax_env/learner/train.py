@@ -92,7 +92,8 @@ class LearnerConfig:
 class ScheduleScale:
   """A stage schedule (config.Schedule) as the learner applies it, one value per
   iteration. By stand rate the value moves one way only (`ratchet`): `max` for penalties, which
-  do not ease off when the stand rate dips, `min` for the assist, which does not come back."""
+  do not ease off when the stand rate dips, `min` for the assist, the imitation weight and the
+  bound on the action std, which do not come back."""
 
   schedule: Any  # config.Schedule or None (the value is then 1 throughout)
   ratchet: Callable[[float, float], float] = max
@@ -264,8 +265,8 @@ def _summarize(stats: Mapping[str, Any]) -> dict[str, Any]:
 
 def _with_schedules(env, env_state, schedules):
   """The env state with this iteration's schedule values, [penalty scale, assist force (N),
-  imitation weight] (the last is the learner's; an env without penalties or an assist ignores
-  them)."""
+  imitation weight, bound on the action std] (the last two are the learner's; an env without
+  penalties or an assist ignores them)."""
   if hasattr(env, "with_penalty_scale"):
     env_state = env.with_penalty_scale(env_state, schedules[0])
   if hasattr(env, "with_assist_force"):
@@ -344,7 +345,9 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
     learner, metrics = ppo_lib.ppo_update(
         learner, data, env_state.obs, env_state.privileged, k_update, nets=nets, cfg=ppo_cfg,
         mirror_weight=config.mirror_weight, maps=maps, calibrate=calibrate, axis_name=AXIS,
-        imitation_weight=schedules[2] if config.imitation is not None else None)
+        imitation_weight=schedules[2] if config.imitation is not None else None,
+        # Without a schedule the bound is cfg's, a compile-time constant.
+        max_action_std=schedules[3] if ppo_cfg.action_std_schedule is not None else None)
     return learner, env_state, history, metrics, scan_stats(stats)
 
   def adaptation_iteration(learner: ppo_lib.LearnerState, env_state, history, key,
@@ -442,8 +445,9 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
   assist = ScheduleScale(config.assist.schedule if config.assist else None, ratchet=min)
   imitation = ScheduleScale(config.imitation.schedule if config.imitation else None,
                             ratchet=min)
+  std_bound = ScheduleScale(p.action_std_schedule, ratchet=min)
   progress = Progress(penalty_scale=penalty.initial, assist_scale=assist.initial,
-                      imitation_scale=imitation.initial)
+                      imitation_scale=imitation.initial, std_scale=std_bound.initial)
   reset = jax.jit(env.reset)
   env_state = None
   history = None
@@ -503,8 +507,9 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
       checkpoints_dir=Path(stage_dir) / "checkpoints", stage_config=stage_config,
       budgets=_Budgets(steps_per_iter=steps_per_iter, ppo=ppo_budget, adaptation=adapt_budget),
       steps={"ppo": ppo_iter, "adaptation": adapt_iter}, monitor=monitor, penalty=penalty,
-      assist=assist, imitation=imitation, callback=callback, log=log, progress=progress,
-      learner=learner, env_state=env_state, history=history, key=key, calibrate=calibrate)
+      assist=assist, imitation=imitation, std_bound=std_bound, callback=callback, log=log,
+      progress=progress, learner=learner, env_state=env_state, history=history, key=key,
+      calibrate=calibrate)
   log(f"stage {config.stage_name}: {batch} envs on {n_dev} device(s), {steps_per_iter} env "
       f"steps per iteration, PPO budget {ppo_budget}, adaptation {adapt_budget}")
   return stage.run()
@@ -532,6 +537,7 @@ class Progress:
   penalty_scale: float = 1.0  # the penalty schedule's scale for the next PPO rollout
   assist_scale: float = 1.0  # the assist schedule's scale for the next PPO rollout
   imitation_scale: float = 1.0  # the imitation schedule's scale for the next PPO update
+  std_scale: float = 1.0  # the action-std schedule's scale of max_action_std, next PPO update
   # The best monitor point so far ([stage.monitor] keep_best): its mean stand rate and the env
   # steps of the checkpoint written there.
   best_monitor_rate: float | None = None
@@ -572,6 +578,7 @@ class _StageRun:
   def __init__(self, *, config: LearnerConfig, net_cfg, names, devices, batch: int, seed: int,
                checkpoints_dir: Path, stage_config, budgets: _Budgets, steps, monitor,
                penalty: ScheduleScale, assist: ScheduleScale, imitation: ScheduleScale,
+               std_bound: ScheduleScale,
                callback, log, progress: Progress, learner, env_state, history, key, calibrate):
     self.config, self.net_cfg, self.names, self.seed = config, net_cfg, names, seed
     self.checkpoints_dir, self.stage_config = checkpoints_dir, stage_config
@@ -579,6 +586,7 @@ class _StageRun:
     self.assist = assist
     self.assist_newtons = float(config.assist.force) if config.assist else 0.0
     self.imitation = imitation
+    self.std_bound = std_bound
     self.imitation_weight = float(config.imitation.weight) if config.imitation else 0.0
     self.callback, self.log, self.progress = callback, log, progress
     self.n_dev = len(devices)
@@ -641,7 +649,10 @@ class _StageRun:
     # The adaptation module learns under deployment's conditions: no assist.
     force = self.assist_newtons * progress.assist_scale if phase == "ppo" else 0.0
     imitation = self.imitation_weight * progress.imitation_scale
-    schedules = jnp.tile(jnp.asarray([scale, force, imitation], jnp.float32), (self.n_dev, 1))
+    max_std = config.ppo.max_action_std
+    bound = max_std * progress.std_scale if max_std is not None else 0.0  # 0: unused
+    schedules = jnp.tile(jnp.asarray([scale, force, imitation, bound], jnp.float32),
+                         (self.n_dev, 1))
     self.learner, self.env_state, self.history, metrics, stats = self.steps[phase](
         self.learner, self.env_state, self.history,
         _put(jax.random.split(k_iter, self.n_dev), self.sharding), _put(schedules, self.sharding),
@@ -659,6 +670,8 @@ class _StageRun:
               "penalty_scale": scale, "assist_force": force}
     if self.imitation_weight > 0 and phase == "ppo":
       report["imitation_weight"] = imitation
+    if max_std is not None and phase == "ppo":
+      report["max_action_std"] = bound
     report.update(_summarize(stats))
     if phase == "ppo":
       progress.penalty_scale = self.penalty.after(scale, progress.ppo_env_steps,
@@ -668,6 +681,9 @@ class _StageRun:
       progress.imitation_scale = self.imitation.after(progress.imitation_scale,
                                                       progress.ppo_env_steps,
                                                       report["stand_rate"])
+      std_scale = self.std_bound.after(progress.std_scale, progress.ppo_env_steps,
+                                       report["stand_rate"])
+      tightened, progress.std_scale = std_scale < progress.std_scale, std_scale
       last = progress.ppo_env_steps >= self.budgets.ppo
       if self.monitor is not None and monitor_lib.is_due(progress.iteration,
                                                          config.monitor.every, last):
@@ -678,6 +694,14 @@ class _StageRun:
           progress.best_monitor_rate = report["monitor"]["mean_stand_rate"]
           progress.best_monitor_env_steps = progress.ppo_env_steps
           self.best_unsaved = True
+      if tightened and progress.best_monitor_env_steps is not None:
+        # The std bound tightens from the next iteration on: keep_best compares only policies
+        # trained under the tightest bound, or a monitor point from before (its 8 episodes per
+        # start cannot tell 94% from 100%) would undo what the low-noise training is for.
+        self.log(f"stage {config.stage_name}: the action std bound tightens to "
+                 f"{config.ppo.max_action_std * std_scale:.3g}; keep_best forgets the monitor "
+                 f"points before {progress.ppo_env_steps} env steps")
+        progress.best_monitor_rate = progress.best_monitor_env_steps = None
     bad = sorted(k for k, v in report["losses"].items() if not math.isfinite(v))
     if bad:
       # The parameters are poisoned from here on: stop rather than checkpoint garbage.

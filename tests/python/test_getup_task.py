@@ -303,6 +303,48 @@ def test_max_action_std_is_validated():
                                     "at": "key"}]
 
 
+def test_action_std_schedule_tightens_the_bound_during_a_stage(tmp_path):
+  # The entropy bonus holds the std at its bound; the schedule halves the bound after the
+  # fourth iteration (4 × 2048 env steps) and the std follows it down, reported per iteration.
+  from toy_env import ToyStandUpEnv, learner_config
+  bound = 0.6
+  schedule = config.Schedule("env_steps", ((0.0, 1.0), (4 * 2048.0, 1.0), (5 * 2048.0, 0.5)))
+  cfg = learner_config(env_steps=8 * 2048, ppo={"entropy_cost": 1.0, "max_action_std": bound,
+                                                "action_std_schedule": schedule},
+                       rma={"adaptation_env_steps": 0})
+  seen = []
+
+  def callback(progress):
+    seen.append((progress["max_action_std"], progress["losses"]["action_std"]))
+    return "continue"
+
+  train_lib.train_stage(ToyStandUpEnv(), cfg, stage_dir=tmp_path, seed=0, callback=callback)
+  bounds = [b for b, _ in seen]
+  assert bounds == pytest.approx([bound] * 5 + [bound / 2] * 3)
+  assert seen[3][1] == pytest.approx(bound, rel=1e-5)  # at the bound before the schedule moves
+  assert seen[-1][1] == pytest.approx(bound / 2, rel=1e-5)
+  # (An iteration's reported std is its minibatches' mean: the first one at a new bound still
+  # samples the old std, projected after its step.)
+  assert all(std <= bound * (1 + 1e-5) for _, std in seen)
+
+
+def test_action_std_schedule_is_validated():
+  d = default_stage_dict("planar")
+  d["ppo"]["max_action_std"] = 1.0
+  d["ppo"]["action_std_schedule"] = {"by": "env_steps", "points": [[0, 1.0], [100, 0.1]]}
+  assert config.check_stage(d) == []
+  assert config.parse_stage(d).ppo.action_std_schedule.scale(50) == pytest.approx(0.55)
+  d["ppo"]["action_std_schedule"]["points"][1][1] = 0.0  # a zero std is no policy
+  assert config.check_stage(d) == [{"path": ["ppo", "action_std_schedule", "points", 1],
+                                    "message": "scale 0.0 must be in (0, 1]: the schedule "
+                                    "tightens max_action_std", "at": "key"}]
+  del d["ppo"]["max_action_std"]
+  d["ppo"]["action_std_schedule"]["points"][1][1] = 0.5
+  assert config.check_stage(d) == [{"path": ["ppo", "action_std_schedule"], "message":
+                                    "action_std_schedule scales max_action_std, which is not "
+                                    "set", "at": "key"}]
+
+
 def test_penalty_schedule_by_env_steps_and_by_stand_rate():
   by_steps = config.Schedule("env_steps", ((0.0, 0.0), (100.0, 0.0), (300.0, 1.0)))
   scale = train_lib.ScheduleScale(by_steps)

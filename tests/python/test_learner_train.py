@@ -223,17 +223,12 @@ def test_u64_seeds_keep_every_bit():
     train.seed_key(-1)
 
 
-def test_keep_best_ends_the_stage_from_the_best_monitor_point(tmp_path, monkeypatch):
-  # [stage.monitor] keep_best: the adaptation phase and the final checkpoint build on the PPO
-  # parameters of the monitor point with the best mean stand rate, the latest of equals. The
-  # toy task has no MuJoCo scene for the real monitor (tested on a held `stand` in
-  # test_getup_task.py), so the monitor's readings are scripted here: 0.2, 0.6, 0.6, 0.1.
-  import dataclasses
-
-  from jax_env import config as config_lib
+def _script_monitor(monkeypatch, rates):
+  """The toy task has no MuJoCo scene for the real monitor (tested on a held `stand` in
+  test_getup_task.py): its mean stand rates are scripted, one per monitor point."""
 
   def scripted_monitor(*_args):  # one per stage, as make_monitor
-    readings = iter([0.2, 0.6, 0.6, 0.1])
+    readings = iter(rates)
 
     def monitor(params, normalizer):
       rate = next(readings)
@@ -242,6 +237,17 @@ def test_keep_best_ends_the_stage_from_the_best_monitor_point(tmp_path, monkeypa
     return monitor
 
   monkeypatch.setattr(train.monitor_lib, "make_monitor", scripted_monitor)
+
+
+def test_keep_best_ends_the_stage_from_the_best_monitor_point(tmp_path, monkeypatch):
+  # [stage.monitor] keep_best: the adaptation phase and the final checkpoint build on the PPO
+  # parameters of the monitor point with the best mean stand rate, the latest of equals
+  # (scripted readings: 0.2, 0.6, 0.6, 0.1).
+  import dataclasses
+
+  from jax_env import config as config_lib
+
+  _script_monitor(monkeypatch, [0.2, 0.6, 0.6, 0.1])
 
   def run(name, keep_best):
     cfg = learner_config(env_steps=4 * ITER_STEPS, rma={"adaptation_env_steps": 2 * ITER_STEPS})
@@ -262,6 +268,37 @@ def test_keep_best_ends_the_stage_from_the_best_monitor_point(tmp_path, monkeypa
 
   last = _params(run("last", keep_best=False)["checkpoint"])
   assert not all(np.array_equal(last[k], final[k]) for k in learned_by_ppo)
+
+
+def test_keep_best_forgets_the_points_before_the_std_bound_tightens(tmp_path, monkeypatch):
+  # ppo.action_std_schedule halves the bound after the third iteration: the monitor points of
+  # iterations 1–3 (0.6, 0.6, 0.2) were trained at the looser bound and no longer compete, so
+  # the stage ends from the last iteration (0.1) although it reads worst.
+  import dataclasses
+
+  from jax_env import config as config_lib
+
+  _script_monitor(monkeypatch, [0.6, 0.6, 0.2, 0.1])
+  schedule = config_lib.Schedule("env_steps", ((0.0, 1.0), (2.0 * ITER_STEPS, 1.0),
+                                               (2.0 * ITER_STEPS, 0.5)))
+  cfg = learner_config(env_steps=4 * ITER_STEPS, rma={"adaptation_env_steps": 0},
+                       ppo={"max_action_std": 1.0, "action_std_schedule": schedule})
+  cfg = dataclasses.replace(cfg, monitor=config_lib.MonitorConfig(
+      every=1, episodes=1, scenarios=("stand",), keep_best=True))
+  bounds = []
+
+  def callback(progress):
+    bounds.append(progress["max_action_std"])
+    return "continue"
+
+  result = train.train_stage(ToyStandUpEnv(), cfg, stage_dir=tmp_path / "run", seed=0,
+                             log_file=tmp_path / "run.log", callback=callback)
+  assert bounds == [1.0, 1.0, 1.0, 0.5]
+  meta = ckpt_lib.read_meta(result["checkpoint"])["learner"]
+  assert (meta["best_monitor_rate"], meta["best_monitor_env_steps"]) == (0.1, 4 * ITER_STEPS)
+  log = (tmp_path / "run.log").read_text()
+  assert "keep_best forgets the monitor points before" in log
+  assert "the last PPO iteration is the best monitor point" in log
 
 
 def test_a_new_best_monitor_point_is_at_least_as_good_as_the_best_so_far():

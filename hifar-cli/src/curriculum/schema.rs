@@ -10,7 +10,7 @@
 //! The optional tables `[stage.reward_shaping]`, `[stage.termination]`, `[stage.monitor]`,
 //! `[stage.assist]`, `[stage.imitation]` (and the optional keys `reward_params.waist_height_target`,
 //! `reward_params.dof_pos_ref_band`, `reward_params.face_down_gate`,
-//! `reward_params.head_down_gate`, `ppo.max_action_std`, `ppo.action_noise_correlation`) are typed here only for their keys and
+//! `reward_params.head_down_gate`, `ppo.max_action_std`, `ppo.action_std_schedule`, `ppo.action_noise_correlation`) are typed here only for their keys and
 //! types; their ranges and meaning are checked by Python (`jax_env/config.py`, `check_stage`),
 //! whose key paths `hifar check` and `hifar train` map back to `FILE:LINE:COL`.
 
@@ -183,7 +183,9 @@ pub struct RewardShaping {
 }
 
 /// `{ by = "env_steps" | "stand_rate", points = [[x, scale], ...] }`: a piecewise-linear scale,
-/// of the penalties (`penalty_schedule`) or of the assisting force (`[stage.assist] schedule`).
+/// of the penalties (`penalty_schedule`), of the assisting force (`[stage.assist] schedule`),
+/// of the imitation weight (`[stage.imitation] schedule`) or of the bound on the action std
+/// (`ppo.action_std_schedule`).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Schedule {
@@ -441,6 +443,8 @@ pub struct Ppo {
     pub checkpoint_every: u32,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_action_std: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub action_std_schedule: Option<Schedule>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub action_noise_correlation: Option<f64>,
 }

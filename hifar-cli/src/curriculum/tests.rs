@@ -232,7 +232,7 @@ fn tiny_with_new_keys() -> String {
         .replacen("prone = 0.2\n", "prone = 0.1\nstand = 0.05\nsquat = 0.05\n", 1)
         .replacen("action_rate = -0.001\n", "action_rate = -0.001\ntrunk_height = 1.0\nwaist_height = 0.5\nupright = 0.2\n", 1)
         .replacen("hip_roll_ref = 0.0\n", "hip_roll_ref = 0.0\nwaist_height_target = 0.55\ndof_pos_ref_band = 0.1\nface_down_gate = [0.3, 0.6]\nhead_down_gate = [0.0, 0.5]\n", 1)
-        .replacen("checkpoint_every = 2\n", "checkpoint_every = 2\nmax_action_std = 1.5\naction_noise_correlation = 0.9\n", 1);
+        .replacen("checkpoint_every = 2\n", "checkpoint_every = 2\nmax_action_std = 1.5\naction_std_schedule = { by='env_steps', points = [[100, 1.0], [3_000, 0.1]] }\naction_noise_correlation = 0.9\n", 1);
     format!(
         "{first}[stage.reward_shaping]\nscale_by_ctrl_dt = true\nclip_at_zero = false\n\
          penalty_schedule = {{ by = \"env_steps\", points = [[0, 0.1], [1_000, 1.0]] }}\n\n\
@@ -259,6 +259,7 @@ fn new_optional_keys_parse_and_reach_python_as_written() {
     assert_eq!(stage["reward_params"]["head_down_gate"], json!([0.0, 0.5]));
     assert_eq!(stage["ppo"]["max_action_std"], json!(1.5));
     assert_eq!(stage["ppo"]["action_noise_correlation"], json!(0.9));
+    assert_eq!(stage["ppo"]["action_std_schedule"], json!({"by": "env_steps", "points": [[100.0, 1.0], [3000.0, 0.1]]}));
     assert_eq!(
         stage["reward_shaping"],
         json!({"scale_by_ctrl_dt": true, "clip_at_zero": false,
@@ -290,6 +291,7 @@ fn new_optional_keys_parse_and_reach_python_as_written() {
     }
     assert!(full["ppo"].get("max_action_std").is_none());
     assert!(full["ppo"].get("action_noise_correlation").is_none());
+    assert!(full["ppo"].get("action_std_schedule").is_none());
     assert!(full["reward_params"].get("waist_height_target").is_none());
     assert!(full["reward_params"].get("dof_pos_ref_band").is_none());
     assert!(full["reward_params"].get("face_down_gate").is_none());
@@ -310,6 +312,8 @@ fn mistakes_in_the_new_tables_have_a_position() {
         ("force = 150.0", "force = \"strong\"", "force = \"strong", "assist.force: invalid type: string \"strong\", expected a number"),
         ("forcing = 0.5", "forcng = 0.5", "forcng", "unknown key `forcng` in [stage.imitation]"),
         ("max_action_std = 1.5", "max_action_std = \"big\"", "max_action_std", "ppo.max_action_std: invalid type: string \"big\", expected a number"),
+        ("[3_000, 0.1]", "[3_000, 0.1, 1.0]", "action_std_schedule", "invalid length 3, expected an array of two numbers [x, scale]"),
+        ("by='env_steps'", "by='steps'", "by='steps'", "unknown value `steps` for stage.ppo.action_std_schedule.by"),
         ("face_down_gate = [0.3, 0.6]", "face_down_gate = [0.3]", "face_down_gate", "invalid length 1, expected an array of two numbers [min, max]"),
         ("waist_height = 0.5", "waist_hieght = 0.5", "waist_hieght", "unknown reward term `waist_hieght` in [stage.rewards]"),
     ];
