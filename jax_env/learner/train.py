@@ -696,10 +696,10 @@ class _StageRun:
           self.best_unsaved = True
       if tightened and progress.best_monitor_env_steps is not None:
         # The std bound tightens from the next iteration on: keep_best compares only policies
-        # trained under the tightest bound, or a monitor point from before (its 8 episodes per
+        # trained under the tightest bound, or a monitor point from before (a few episodes per
         # start cannot tell 94% from 100%) would undo what the low-noise training is for.
         self.log(f"stage {config.stage_name}: the action std bound tightens to "
-                 f"{config.ppo.max_action_std * std_scale:.3g}; keep_best forgets the monitor "
+                 f"{max_std * std_scale:.3g}; keep_best forgets the monitor "
                  f"points before {progress.ppo_env_steps} env steps")
         progress.best_monitor_rate = progress.best_monitor_env_steps = None
     bad = sorted(k for k, v in report["losses"].items() if not math.isfinite(v))
