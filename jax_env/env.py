@@ -380,7 +380,10 @@ class FallRecoveryEnv:
     low_steps, terminated = self._terminations(state, x, active)
     done = time_up | ~finite | terminated
     episode_return = state.episode_return + reward
-    max_height = jnp.maximum(state.max_height, jnp.nan_to_num(view.qpos[:, 2]))
+    # A blown-up step's height is the numerics', not the robot's: the episode ends on it and
+    # keeps the highest height it had reached before.
+    max_height = jnp.where(finite, jnp.maximum(state.max_height, jnp.nan_to_num(view.qpos[:, 2])),
+                           state.max_height)
     stand_steps = state.stand_steps + metrics["standing"].astype(jnp.int32)
     episode_metrics = {
         "success": success.success.astype(jnp.float32),

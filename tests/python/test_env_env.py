@@ -13,6 +13,7 @@ import pytest
 from jax_env import features, names, robot
 from jax_env.defaults import default_stage_dict
 from jax_env.names import SCENARIOS
+from jax_env import env as env_lib
 from jax_env.env import FallRecoveryEnv
 from jax_env.kinematics import quat_to_mat
 from jax_env.physics import nominal_params
@@ -237,6 +238,20 @@ def test_success_for_held_stand_and_not_for_lying(env, fns):
   np.testing.assert_allclose(np.asarray(s.episode_metrics["recovery_time"]), 0.0)
   np.testing.assert_array_equal(np.asarray(lying.episode_metrics["success"]), 0.0)
   assert np.all(np.isnan(np.asarray(lying.episode_metrics["recovery_time"])))
+
+
+def test_a_blown_up_step_ends_the_episode_and_keeps_its_height_out(env, fns):
+  """A step whose speeds pass BLOWUP_SPEED ends the episode without a bootstrap, and its
+  height (the numerics', 100 m up here) does not enter the episode's `max_height` metric."""
+  _, reset_to, step = fns
+  qpos, _ = robot.keyframe(env.mj_model, "stand")
+  qpos = np.tile(qpos, (B, 1)).astype(np.float32)
+  qvel = np.zeros((B, env.mj_model.nv), np.float32)
+  qvel[:, 2] = 5.0 * env_lib.BLOWUP_SPEED  # straight up, far past any physical speed
+  s = step(reset_to(_keys(9), jnp.asarray(qpos), jnp.asarray(qvel)), jnp.zeros((B, env.action_size)))
+  assert np.all(np.asarray(s.done) == 1.0) and np.all(np.asarray(s.truncation) == 0.0)
+  np.testing.assert_allclose(np.asarray(s.episode_metrics["max_height"]), qpos[:, 2], rtol=1e-6)
+  assert np.all(np.asarray(s.reward) == 0.0)
 
 
 def _view(model, data) -> PhysicsView:
