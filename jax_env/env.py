@@ -382,8 +382,7 @@ class FallRecoveryEnv:
     episode_return = state.episode_return + reward
     # A blown-up step's height is the numerics', not the robot's: the episode ends on it and
     # keeps the highest height it had reached before.
-    max_height = jnp.where(finite, jnp.maximum(state.max_height, jnp.nan_to_num(view.qpos[:, 2])),
-                           state.max_height)
+    max_height = jnp.where(finite, jnp.maximum(state.max_height, view.qpos[:, 2]), state.max_height)
     stand_steps = state.stand_steps + metrics["standing"].astype(jnp.int32)
     episode_metrics = {
         "success": success.success.astype(jnp.float32),

@@ -13,8 +13,7 @@ import pytest
 from jax_env import features, names, robot
 from jax_env.defaults import default_stage_dict
 from jax_env.names import SCENARIOS
-from jax_env import env as env_lib
-from jax_env.env import FallRecoveryEnv
+from jax_env.env import BLOWUP_SPEED, FallRecoveryEnv
 from jax_env.kinematics import quat_to_mat
 from jax_env.physics import nominal_params
 from jax_env.physics.view import PhysicsView
@@ -247,7 +246,7 @@ def test_a_blown_up_step_ends_the_episode_and_keeps_its_height_out(env, fns):
   qpos, _ = robot.keyframe(env.mj_model, "stand")
   qpos = np.tile(qpos, (B, 1)).astype(np.float32)
   qvel = np.zeros((B, env.mj_model.nv), np.float32)
-  qvel[:, 2] = 5.0 * env_lib.BLOWUP_SPEED  # straight up, far past any physical speed
+  qvel[:, 2] = 5.0 * BLOWUP_SPEED  # straight up, far past any physical speed
   s = step(reset_to(_keys(9), jnp.asarray(qpos), jnp.asarray(qvel)), jnp.zeros((B, env.action_size)))
   assert np.all(np.asarray(s.done) == 1.0) and np.all(np.asarray(s.truncation) == 0.0)
   np.testing.assert_allclose(np.asarray(s.episode_metrics["max_height"]), qpos[:, 2], rtol=1e-6)
