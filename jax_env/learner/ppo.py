@@ -159,7 +159,10 @@ def ppo_loss(train_params: dict, normalizer, mb: dict, nets: nets_lib.Networks, 
   adv_mean = _weighted_mean(adv, w)
   adv_std = jnp.sqrt(_weighted_mean(jnp.square(adv - adv_mean), w))
   adv = (adv - adv_mean) / (adv_std + 1e-8)
-  ratio = jnp.exp(log_prob - mb["log_prob"])
+  # A sample out of the loss (weight 0: a truncated step, or a step forced to act with a path's
+  # plan, whose action can lie hundreds of nats off the policy) must not overflow the ratio:
+  # inf × 0 is NaN, and one NaN ends the stage.
+  ratio = jnp.exp(jnp.where(w > 0, log_prob - mb["log_prob"], 0.0))
   surrogate = jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - cfg.clip_epsilon,
                                                 1 + cfg.clip_epsilon) * adv)
   policy_loss = -_weighted_mean(surrogate, w)

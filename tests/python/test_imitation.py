@@ -132,6 +132,42 @@ def test_the_imitation_term_is_the_weighted_error_on_the_path_samples():
   assert float(none) == pytest.approx(float(base), rel=1e-6)
 
 
+def test_a_forced_sample_far_off_the_policy_leaves_the_loss_finite():
+  """A forced step's action (the plan's, plus noise) can have a log-probability hundreds of
+  nats below the policy's; with weight 0 it must drop out of the surrogate, not overflow the
+  ratio into inf × 0 = NaN (a training run failed so at iteration 5)."""
+  toy = ToyStandUpEnv()
+  net_cfg = nets_lib.NetworkConfig(
+      obs_size=toy.obs_size, privileged_size=toy.privileged_size, action_size=toy.action_size,
+      policy_hidden=(16,), value_hidden=(16,), activation="elu", rma=False, latent_dim=2,
+      encoder_hidden=(8,), history_len=4, initial_action_std=0.5)
+  nets = nets_lib.Networks(net_cfg)
+  params = nets.init(jax.random.PRNGKey(0))
+  normalizer = nets_lib.init_normalizer(net_cfg)
+  n = 8
+  k = jax.random.split(jax.random.PRNGKey(1), 3)
+  obs = jax.random.normal(k[0], (n, toy.obs_size))
+  priv = jax.random.normal(k[1], (n, toy.privileged_size))
+  loc = nets_lib.privileged_mean(nets, params, normalizer, obs, priv)
+  forced = (jnp.arange(n) == 0).astype(jnp.float32)
+  mb = {"obs": obs, "privileged": priv, "action": loc, "loc": loc,
+        "log_prob": jnp.where(forced > 0, -300.0, 0.0), "target": jnp.zeros(n),
+        "advantage": jax.random.normal(k[2], (n,)), "weight": 1.0 - forced,
+        "teacher": loc, "teacher_weight": forced}
+  cfg = types.SimpleNamespace(clip_epsilon=0.2, value_loss_coef=0.5, entropy_cost=0.0)
+
+  def loss(params, mb):
+    return ppo_lib.ppo_loss(params, normalizer, mb, nets, cfg, 0.0, toy.mirror,
+                            params["policy"]["log_std"], imitation_weight=1.0)
+
+  (total, metrics), grads = jax.value_and_grad(loss, has_aux=True)(params, mb)
+  assert np.isfinite(float(total)) and np.isfinite(float(metrics["policy"]))
+  assert all(np.all(np.isfinite(np.asarray(g))) for g in jax.tree_util.tree_leaves(grads))
+  # The same as with an ordinary log-probability on the weight-0 sample.
+  same, _ = loss(params, {**mb, "log_prob": jnp.zeros(n)})
+  assert float(total) == pytest.approx(float(same), rel=1e-6)
+
+
 def test_the_imitation_section_is_parsed_and_validated():
   fade = config.Schedule(by="env_steps", points=((0.0, 1.0), (1000.0, 0.0)))
   d = _path_stage({"kneel_path": 1.0})
