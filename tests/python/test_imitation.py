@@ -94,15 +94,19 @@ def test_a_path_the_stage_cannot_follow_has_no_plan():
   assert np.all(np.asarray(env.teacher_action(state)[1]) == 0)
 
 
-def test_the_imitation_term_is_the_weighted_error_on_the_path_samples():
+def _toy_learner():
+  """The toy task and a small freshly initialised learner on it, for the loss tests."""
   toy = ToyStandUpEnv()
   net_cfg = nets_lib.NetworkConfig(
       obs_size=toy.obs_size, privileged_size=toy.privileged_size, action_size=toy.action_size,
       policy_hidden=(16,), value_hidden=(16,), activation="elu", rma=False, latent_dim=2,
       encoder_hidden=(8,), history_len=4, initial_action_std=0.5)
   nets = nets_lib.Networks(net_cfg)
-  params = nets.init(jax.random.PRNGKey(0))
-  normalizer = nets_lib.init_normalizer(net_cfg)
+  return toy, nets, nets.init(jax.random.PRNGKey(0)), nets_lib.init_normalizer(net_cfg)
+
+
+def test_the_imitation_term_is_the_weighted_error_on_the_path_samples():
+  toy, nets, params, normalizer = _toy_learner()
   n = 64
   k = jax.random.split(jax.random.PRNGKey(1), 4)
   obs = jax.random.normal(k[0], (n, toy.obs_size))
@@ -136,14 +140,7 @@ def test_a_forced_sample_far_off_the_policy_leaves_the_loss_finite():
   """A forced step's action (the plan's, plus noise) can have a log-probability hundreds of
   nats below the policy's; with weight 0 it must drop out of the surrogate, not overflow the
   ratio into inf × 0 = NaN (a training run failed so at iteration 5)."""
-  toy = ToyStandUpEnv()
-  net_cfg = nets_lib.NetworkConfig(
-      obs_size=toy.obs_size, privileged_size=toy.privileged_size, action_size=toy.action_size,
-      policy_hidden=(16,), value_hidden=(16,), activation="elu", rma=False, latent_dim=2,
-      encoder_hidden=(8,), history_len=4, initial_action_std=0.5)
-  nets = nets_lib.Networks(net_cfg)
-  params = nets.init(jax.random.PRNGKey(0))
-  normalizer = nets_lib.init_normalizer(net_cfg)
+  toy, nets, params, normalizer = _toy_learner()
   n = 8
   k = jax.random.split(jax.random.PRNGKey(1), 3)
   obs = jax.random.normal(k[0], (n, toy.obs_size))
