@@ -94,33 +94,38 @@ def test_a_path_the_stage_cannot_follow_has_no_plan():
   assert np.all(np.asarray(env.teacher_action(state)[1]) == 0)
 
 
-def _toy_learner():
-  """The toy task and a small freshly initialised learner on it, for the loss tests."""
+# The PPO settings the loss tests need.
+LOSS_CFG = types.SimpleNamespace(clip_epsilon=0.2, value_loss_coef=0.5, entropy_cost=0.0)
+
+
+def _toy_learner(n: int):
+  """The toy task, a small freshly initialised learner on it, n random observations and the
+  policy's mean on them, and a spare key: for the loss tests."""
   toy = ToyStandUpEnv()
   net_cfg = nets_lib.NetworkConfig(
       obs_size=toy.obs_size, privileged_size=toy.privileged_size, action_size=toy.action_size,
       policy_hidden=(16,), value_hidden=(16,), activation="elu", rma=False, latent_dim=2,
       encoder_hidden=(8,), history_len=4, initial_action_std=0.5)
   nets = nets_lib.Networks(net_cfg)
-  return toy, nets, nets.init(jax.random.PRNGKey(0)), nets_lib.init_normalizer(net_cfg)
-
-
-def test_the_imitation_term_is_the_weighted_error_on_the_path_samples():
-  toy, nets, params, normalizer = _toy_learner()
-  n = 64
-  k = jax.random.split(jax.random.PRNGKey(1), 4)
+  params, normalizer = nets.init(jax.random.PRNGKey(0)), nets_lib.init_normalizer(net_cfg)
+  k = jax.random.split(jax.random.PRNGKey(1), 3)
   obs = jax.random.normal(k[0], (n, toy.obs_size))
   priv = jax.random.normal(k[1], (n, toy.privileged_size))
   loc = nets_lib.privileged_mean(nets, params, normalizer, obs, priv)
-  teacher = jax.random.normal(k[2], loc.shape)
+  return toy, nets, params, normalizer, obs, priv, loc, k[2]
+
+
+def test_the_imitation_term_is_the_weighted_error_on_the_path_samples():
+  n = 64
+  toy, nets, params, normalizer, obs, priv, loc, key = _toy_learner(n)
+  teacher = jax.random.normal(key, loc.shape)
   on = (jnp.arange(n) % 4 == 0).astype(jnp.float32)
   mb = {"obs": obs, "privileged": priv, "action": loc, "loc": loc,
         "log_prob": jnp.zeros(n), "target": jnp.zeros(n), "advantage": jnp.zeros(n),
         "weight": jnp.ones(n), "teacher": teacher, "teacher_weight": on}
-  cfg = types.SimpleNamespace(clip_epsilon=0.2, value_loss_coef=0.5, entropy_cost=0.0)
 
   def loss(weight, mb=mb):
-    return ppo_lib.ppo_loss(params, normalizer, mb, nets, cfg, 0.0, toy.mirror,
+    return ppo_lib.ppo_loss(params, normalizer, mb, nets, LOSS_CFG, 0.0, toy.mirror,
                             params["policy"]["log_std"], imitation_weight=weight)
 
   base, _ = loss(0.0)
@@ -140,21 +145,16 @@ def test_a_forced_sample_far_off_the_policy_leaves_the_loss_finite():
   """A forced step's action (the plan's, plus noise) can have a log-probability hundreds of
   nats below the policy's; with weight 0 it must drop out of the surrogate, not overflow the
   ratio into inf × 0 = NaN (a training run failed so at iteration 5)."""
-  toy, nets, params, normalizer = _toy_learner()
   n = 8
-  k = jax.random.split(jax.random.PRNGKey(1), 3)
-  obs = jax.random.normal(k[0], (n, toy.obs_size))
-  priv = jax.random.normal(k[1], (n, toy.privileged_size))
-  loc = nets_lib.privileged_mean(nets, params, normalizer, obs, priv)
+  toy, nets, params, normalizer, obs, priv, loc, key = _toy_learner(n)
   forced = (jnp.arange(n) == 0).astype(jnp.float32)
   mb = {"obs": obs, "privileged": priv, "action": loc, "loc": loc,
         "log_prob": jnp.where(forced > 0, -300.0, 0.0), "target": jnp.zeros(n),
-        "advantage": jax.random.normal(k[2], (n,)), "weight": 1.0 - forced,
+        "advantage": jax.random.normal(key, (n,)), "weight": 1.0 - forced,
         "teacher": loc, "teacher_weight": forced}
-  cfg = types.SimpleNamespace(clip_epsilon=0.2, value_loss_coef=0.5, entropy_cost=0.0)
 
   def loss(params, mb):
-    return ppo_lib.ppo_loss(params, normalizer, mb, nets, cfg, 0.0, toy.mirror,
+    return ppo_lib.ppo_loss(params, normalizer, mb, nets, LOSS_CFG, 0.0, toy.mirror,
                             params["policy"]["log_std"], imitation_weight=1.0)
 
   (total, metrics), grads = jax.value_and_grad(loss, has_aux=True)(params, mb)
