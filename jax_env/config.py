@@ -394,14 +394,31 @@ class _Parser:
 
   def scenario_params(self, d):
     p = ["scenario_params"]
-    d = self._section(d, "scenario_params", ("ksi_joint_noise", "settle_s"))
+    d = self._section(d, "scenario_params", ("ksi_joint_noise", "settle_s"),
+                      ("path_start_window_s",))
     settle = self.number(d, "settle_s", p, minimum=0.0)
     if settle is not None and self.episode_s is not None and settle >= self.episode_s:
       self.bad_value(p + ["settle_s"], f"settle_s = {_show(settle)} must be < episode_s = "
                      f"{_show(self.episode_s)}")
       settle = None
+    windows = self.path_start_window(d.get("path_start_window_s", {}) if d else {},
+                                     p + ["path_start_window_s"])
     return self._all(ScenarioParams, dict(
-        ksi_joint_noise=self.number(d, "ksi_joint_noise", p, minimum=0.0), settle_s=settle))
+        ksi_joint_noise=self.number(d, "ksi_joint_noise", p, minimum=0.0), settle_s=settle,
+        path_start_window_s=windows))
+
+  def path_start_window(self, d, p):
+    from jax_env.scenarios import PATH_SCENARIOS  # the path scenarios are the sampler's
+    if not isinstance(d, Mapping):
+      self.err(p, "expected a table of path scenario = seconds")
+      return None
+    out = {}
+    for k in d:
+      if k not in PATH_SCENARIOS:
+        self.err(p + [k], f"unknown path scenario '{k}'; {_valid(list(PATH_SCENARIOS))}")
+        continue
+      out[k] = self.number(d, k, p, minimum=0.0, exclusive=True)
+    return None if any(v is None for v in out.values()) or len(out) < len(d) else out
 
   def terrain(self, d):
     if d is None:

@@ -315,7 +315,9 @@ class ScenarioSampler:
       offset = 0
       for scenario_name, path_name in PATH_SCENARIOS.items():
         first[SCENARIOS.index(scenario_name)] = offset
-        count[SCENARIOS.index(scenario_name)] = rises[path_name]
+        window = self.stage.scenario_params.path_start_window_s.get(scenario_name)
+        frames = rises[path_name] if window is None else int(round(window / getup_paths.CTRL_DT))
+        count[SCENARIOS.index(scenario_name)] = max(1, min(rises[path_name], frames))
         offset += rises[path_name]
       qpos = jnp.asarray(np.concatenate([stored[n].qpos[:rises[n]] for n in rises]), jnp.float32)
       qvel = jnp.asarray(np.concatenate([stored[n].qvel[:rises[n]] for n in rises]), jnp.float32)

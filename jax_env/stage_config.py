@@ -56,6 +56,10 @@ class ConstraintsConfig:
 class ScenarioParams:
   ksi_joint_noise: float
   settle_s: float
+  # Per path scenario (`supine_path`, `prone_path`, `kneel_path`): its starts are drawn from the
+  # path's first this-many seconds only (default, or longer than the rise: the whole rise) —
+  # to practise the start of a path, e.g. the kneel path's roll out of ksi_prone_3.
+  path_start_window_s: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -75,6 +75,7 @@ fn stage_semantics_are_checked_by_python_at_their_lines() {
         ("policy_hidden = [16, 16]", "policy_hidden = [16, 0]", "policy_hidden[1] = 0; layer sizes must be positive"),
         ("slope_max_deg = 0.0", "slope_max_deg = 45.0", "slope_max_deg = 45 is out of range; expected >= 0 and <= 30"),
         ("settle_s = 0.2", "settle_s = 2.0", "settle_s = 2 must be < episode_s = 1"),
+        ("settle_s = 0.2", "path_start_window_s = { kneel_path = 0.0 }\nsettle_s = 0.2", "kneel_path = 0 is out of range; expected > 0"),
         ("hold_s = 0.2", "hold_s = 1.0", "hold_s = 1 must be < episode_s = 1: no episode could ever count as standing"),
         ("interval_s = [2.0, 4.0]", "interval_s = [4.0, 2.0]", "interval_s = [4, 2]: min 4 > max 2"),
         ("hip_roll_ref = 0.0", "face_down_gate = [0.6, 0.3]\nhip_roll_ref = 0.0", "face_down_gate = [0.6, 0.3]: expected [full, zero] with -1 <= full < zero <= 1"),
@@ -98,6 +99,8 @@ fn stage_semantics_are_checked_by_python_at_their_lines() {
         // something, at its key.
         let expected = if message.contains("symmetric") {
             line_col(&text, "controlled_joints", 0)
+        } else if message.starts_with("kneel_path") {
+            line_col(&text, new, new.find("0.0").unwrap())
         } else if message.contains("listed twice") || message.contains("layer sizes") {
             line_col(&text, new, new.find(", ").unwrap() + 2)
         } else {

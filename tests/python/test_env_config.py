@@ -210,6 +210,18 @@ def test_gravity_gates_are_optional_pairs_in_the_gravity_range():
     assert e.path == ("reward_params", "head_down_gate"), bad
 
 
+def test_path_start_windows_are_optional_positive_seconds_per_path_scenario():
+  d = default_stage_dict("planar")
+  assert StageConfig.from_dict(d).scenario_params.path_start_window_s == {}
+  d["scenario_params"]["path_start_window_s"] = {"kneel_path": 1.0}
+  assert StageConfig.from_dict(d).scenario_params.path_start_window_s == {"kneel_path": 1.0}
+  for bad, at in (({"kneel_path": 0.0}, "kneel_path"), ({"kneel_path": "1 s"}, "kneel_path"),
+                  ({"ksi_prone_3": 1.0}, "ksi_prone_3"), (1.0, None)):
+    d["scenario_params"]["path_start_window_s"] = bad
+    e = _error(d)
+    assert e.path == ("scenario_params", "path_start_window_s") + ((at,) if at else ()), bad
+
+
 def test_check_stage_collects_every_error():
   d = default_stage_dict("full")
   d["controlled_joints"].append("Tail")

@@ -127,13 +127,8 @@ def test_the_paths_file_round_trips_and_refuses_another_format(tmp_path, supine)
     getup_paths.load(bad)
 
 
-@pytest.mark.parametrize("scenario", tuple(PATH_SCENARIOS))
-def test_path_scenarios_start_on_the_rise_with_its_velocities(scenario):
-  path = getup_paths.load()[PATH_SCENARIOS[scenario]]
-  env = FallRecoveryEnv(_stage(scenarios={scenario: 1.0}), backend="native")
-  state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(7), 16))
-  assert np.all(np.asarray(state.scenario) == SCENARIOS.index(scenario))
-  assert np.all(np.asarray(state.control_active) == 1.0)  # acts from the first step
+def _start_frames(env, path, state):
+  """The rise frame each episode of `state` started on; asserts that it starts on one."""
   view = env.backend.view(state.physics)
   qpos, qvel = np.asarray(view.qpos), np.asarray(view.qvel)
   rise_q = path.qpos[:path.stand_index]
@@ -151,8 +146,40 @@ def test_path_scenarios_start_on_the_rise_with_its_velocities(scenario):
     assert abs(np.hypot(*v[0:2]) - np.hypot(*rise_v[i, 0:2])) < 1e-4
     assert abs(v[2] - rise_v[i, 2]) < 1e-4
     frames.append(i)
+  return frames
+
+
+@pytest.mark.parametrize("scenario", tuple(PATH_SCENARIOS))
+def test_path_scenarios_start_on_the_rise_with_its_velocities(scenario):
+  path = getup_paths.load()[PATH_SCENARIOS[scenario]]
+  env = FallRecoveryEnv(_stage(scenarios={scenario: 1.0}), backend="native")
+  state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(7), 16))
+  assert np.all(np.asarray(state.scenario) == SCENARIOS.index(scenario))
+  assert np.all(np.asarray(state.control_active) == 1.0)  # acts from the first step
+  frames = _start_frames(env, path, state)
   assert len(set(frames)) > 8  # drawn along the whole rise, not one state
-  assert max(np.max(np.abs(v)) for v in qvel) > 1.0  # some start moving
+  assert max(frames) > path.stand_index // 2
+  assert np.max(np.abs(np.asarray(env.backend.view(state.physics).qvel))) > 1.0  # some move
+
+
+def test_a_start_window_draws_a_paths_starts_from_its_first_seconds_only():
+  """`path_start_window_s = { kneel_path = 0.3 }`: the kneel path's starts lie in its first
+  0.3 s (15 stored frames at 50 Hz: the push-up before the roll), the supine path's on its
+  whole rise."""
+  d = _stage(scenarios={"kneel_path": 0.5, "supine_path": 0.5})
+  d["scenario_params"]["path_start_window_s"] = {"kneel_path": 0.3}
+  env = FallRecoveryEnv(d, backend="native")
+  state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(7), 48))
+  paths = getup_paths.load()
+  for scenario, window in (("kneel_path", 15), ("supine_path", None)):
+    on = np.asarray(state.scenario) == SCENARIOS.index(scenario)
+    assert on.sum() > 12
+    frames = _start_frames(env, paths[PATH_SCENARIOS[scenario]],
+                           jax.tree_util.tree_map(lambda x: x[on], state))
+    if window is None:
+      assert max(frames) >= 15
+    else:
+      assert max(frames) < window and len(set(frames)) > 5
 
 
 def test_path_scenarios_are_in_the_shared_vocabulary():

@@ -8,7 +8,8 @@
 //! absent), which is the stage table Python receives.
 //!
 //! The optional tables `[stage.reward_shaping]`, `[stage.termination]`, `[stage.monitor]`,
-//! `[stage.assist]`, `[stage.imitation]` (and the optional keys `reward_params.waist_height_target`,
+//! `[stage.assist]`, `[stage.imitation]` (and the optional keys `scenario_params.path_start_window_s`,
+//! `reward_params.waist_height_target`,
 //! `reward_params.dof_pos_ref_band`, `reward_params.face_down_gate`,
 //! `reward_params.head_down_gate`, `ppo.max_action_std`, `ppo.action_std_schedule`, `ppo.action_noise_correlation`) are typed here only for their keys and
 //! types; their ranges and meaning are checked by Python (`jax_env/config.py`, `check_stage`),
@@ -115,6 +116,8 @@ pub struct Constraints {
 pub struct ScenarioParams {
     pub ksi_joint_noise: f64,
     pub settle_s: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub path_start_window_s: Option<BTreeMap<String, f64>>,
 }
 
 /// `[stage.terrain]`: terrain mixture weights (omitted terrains weigh 0) and the slope range.
