@@ -8,10 +8,11 @@
 //! absent), which is the stage table Python receives.
 //!
 //! The optional tables `[stage.reward_shaping]`, `[stage.termination]`, `[stage.monitor]`,
-//! `[stage.assist]`, `[stage.imitation]` (and the optional keys `scenario_params.path_start_window_s`,
-//! `reward_params.waist_height_target`,
+//! `[stage.assist]`, `[stage.imitation]` (and the optional keys
+//! `scenario_params.path_start_window_s`, `reward_params.waist_height_target`,
 //! `reward_params.dof_pos_ref_band`, `reward_params.face_down_gate`,
-//! `reward_params.head_down_gate`, `ppo.max_action_std`, `ppo.action_std_schedule`, `ppo.action_noise_correlation`) are typed here only for their keys and
+//! `reward_params.head_down_gate`, `ppo.max_action_std`, `ppo.action_std_schedule`,
+//! `ppo.action_noise_correlation`) are typed here only for their keys and
 //! types; their ranges and meaning are checked by Python (`jax_env/config.py`, `check_stage`),
 //! whose key paths `hifar check` and `hifar train` map back to `FILE:LINE:COL`.
 
