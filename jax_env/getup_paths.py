@@ -3,9 +3,10 @@
 The paper's KSI starts episodes from six static key states. The supine get-up of the sagittal
 stage is dynamic: the policies that learned it rock back onto the shoulders and swing forward
 onto the feet, through states with momentum that no static key state holds, and PPO at the
-CPU budgets of cpu.toml found that motion on about one seed in three (README). Reference state
-initialisation (DeepMimic's RSI; "backplay") starts episodes on such a motion instead: a policy
-first learns to finish the get-up from its late states, then from ever earlier ones.
+CPU budgets of cpu.toml found that motion on about one seed in three (docs/experiments.md).
+Reference state initialisation (DeepMimic's RSI; "backplay") starts episodes on such a motion
+instead: a policy first learns to finish the get-up from its late states, then from ever earlier
+ones.
 
 A path here is not a demonstration the policy imitates — no reward term reads it — but a
 sequence of physically consistent start states. It is found, not drawn by hand: open-loop PD
@@ -128,7 +129,7 @@ PATHS: dict[str, PathSpec] = {
         then="supine", score_from=3.0, iterations=12),
     # Kneeling on the shins, hands down (ksi_prone_3): onto the back with the sagittal joints
     # alone, each side free — the planar stage's action space — then the supine get-up. The
-    # direct rise onto the feet from there was never found (README); this way round is.
+    # direct rise onto the feet from there was never found (docs/experiments.md); this way round is.
     "kneel": PathSpec(
         pitch=None, keyframe="ksi_prone_3",
         search=Segment(driven=tuple(f"{side}_{j}" for side in ("Left", "Right")

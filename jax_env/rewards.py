@@ -26,9 +26,9 @@ Choices where the paper's table is ambiguous:
     `ksi_prone_3`, 0 standing, −1 lying supine): 0 face down, rising with every degree of roll
     or pitch away from it, 1 from a 30° forward lean on (the supine get-up's lean, g_x 0.26 in
     `ksi_supine_3`, is left alone). Ours: no open-loop schedule searched in the training
-    environment rises from the knees within the motors' velocity limits (README), while
+    environment rises from the knees within the motors' velocity limits (docs/experiments.md), while
     rolling onto the back is easy; with weight 4 in cpu.toml's stage 2 the policy learned to
-    get up from prone by rolling onto its back and rising as from supine (README).
+    get up from prone by rolling onto its back and rising as from supine (docs/experiments.md).
   * Hip roll is Σ over both hips of (q − q_ref)² with the left/right-mirrored reference
     (q_ref for the left hip, −q_ref for the right: positive left roll and negative right roll
     both spread the legs).

@@ -31,7 +31,7 @@ from ksi_supine_3 within 1–2M env steps and hold ksi_supine_2 sitting, and the
 them came (for the whole supine family at once) after 8–10M env steps in 2 of 4 runs, in none
 by 11M in the other two. Measured with 10% of cpu.toml's stage-1 starts (seed 1): the policy
 rose from the crouch half of the line from 2.5M env steps on and never from the sitting half
-(README); like `kneel_to_crouch`, available but unused by the shipped curricula.
+(docs/experiments.md); like `kneel_to_crouch`, available but unused by the shipped curricula.
 
 `rock_back` (ours) is a key state of the supine get-up that the policies which learned it
 actually pass through: rocked back onto the shoulders, Trunk tilted head-down (pitched 2.4 rad
@@ -40,9 +40,9 @@ their extension limit (1.55), shoulders swung back (−1.8), at rest. Traced in 
 a policy (cpu.toml with hifar.toml's stage-1 extension, seed 1) goes through this posture 0.6–
 0.7 s after leaving `ksi_supine_2` or `ksi_supine_1` and swings forward onto its feet; from the
 static posture it stands up within 0.6 s (6 of 6, with joint noise), a zero action does not
-(Trunk ≤ 0.43 m), and a policy without the get-up falls flat instead of tucking (README).
-As a stage-1 start it did not teach the get-up (README, "A supine trap"); unused by the
-shipped curricula.
+(Trunk ≤ 0.43 m), and a policy without the get-up falls flat instead of tucking
+(docs/experiments.md). As a stage-1 start it did not teach the get-up (docs/experiments.md, "A
+supine trap"); unused by the shipped curricula.
 
 `supine_path` (ours) is reference state initialisation on that motion: a state drawn uniformly
 in time from the rise of the stored supine get-up path (`jax_env.getup_paths`: open-loop PD

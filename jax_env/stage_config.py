@@ -82,8 +82,8 @@ class RewardParams:
   # between; None: no gate. `face_down_gate` (on g_x) takes the height terms (base_height,
   # trunk_height, waist_height) away with the chest towards the floor, so that a face-down
   # push-up into a head-down kneel is not paid more than lying on the back (the prone trap,
-  # README); `head_down_gate` (on g_z) takes the heights and `not_prone` away with the Trunk
-  # pitched head-down.
+  # docs/experiments.md); `head_down_gate` (on g_z) takes the heights and `not_prone` away with the
+  # Trunk pitched head-down.
   face_down_gate: tuple[float, float] | None = None
   head_down_gate: tuple[float, float] | None = None
 
@@ -244,7 +244,8 @@ class PPOConfig:
   max_action_std: float | None = None  # the policy's std is kept at or below this
   # A scale (0, 1] of max_action_std over the stage (by env steps or stand rate; a ratchet
   # that only tightens): explore widely first, then train the policy that is deployed, its
-  # mean, with little noise (README, "The deterministic gap"). None: the bound is constant.
+  # mean, with little noise (docs/experiments.md, "The deterministic gap"). None: the bound is
+  # constant.
   action_std_schedule: Schedule | None = None
   # ρ of the AR(1) exploration noise per control step (0: white noise, brax's sampling).
   action_noise_correlation: float = 0.0

@@ -281,8 +281,8 @@ def correlated_noise(previous: jax.Array, key: jax.Array, rho: float) -> jax.Arr
   itself. Correlated action noise explores the slow whole-body moves of a get-up, which white
   noise at 50 Hz averages away in the PD loop (Hollenstein et al., "Colored Noise in PPO",
   AAAI 2024; Raffin et al.'s gSDE). The noise starts afresh at every iteration, so the rollout
-  state (and exact resume) carries none of it. On the T1 get-up (README) it kept the policy
-  from holding the standing tolerance, so no shipped curriculum uses it."""
+  state (and exact resume) carries none of it. On the T1 get-up (docs/experiments.md) it kept the
+  policy from holding the standing tolerance, so no shipped curriculum uses it."""
   xi = jax.random.normal(key, previous.shape)
   if rho == 0.0:
     return xi
