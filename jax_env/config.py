@@ -32,8 +32,8 @@ from jax_env.stage_config import (ACTION_MAPPINGS, DR_DISTRIBUTIONS, DR_OPERATIO
                                   MirrorConfig,
                                   MonitorConfig, PPOConfig, PushConfig, RewardParams,
                                   RewardShaping, RMAConfig, ScenarioParams, Schedule,
-                                  SimConfig, StageConfig, SuccessConfig, TerminationConfig,
-                                  TerrainConfig)
+                                  SimConfig, StageConfig, SuccessConfig, TERMINATION_RULES,
+                                  TerminationConfig, TerrainConfig)
 
 __all__ = [
     "ConfigError", "check_stage", "parse_stage",
@@ -534,7 +534,7 @@ class _Parser:
 
   def termination(self, d):
     p = ["termination"]
-    gravity_limits = ("upside_down", "upside_down_face_down", "side_roll")  # components, ≤ 1
+    gravity_limits = TERMINATION_RULES[1:]  # components of the unit gravity vector, ≤ 1
     keys = ("low_height", "low_height_s") + gravity_limits
     d = self._section(d, "termination", (), keys)
     default = TerminationConfig()

@@ -50,7 +50,7 @@ from jax_env.randomization import (TERRAINS, EpisodeDraw, PushState, Pusher, Ran
                                    constrained_model, delayed_ctrl,
                                    velocity_limited_target)
 from jax_env.scenarios import SCENARIOS, ScenarioSampler
-from jax_env.stage_config import StageConfig
+from jax_env.stage_config import EPISODE_ENDS, TERMINATION_RULES, StageConfig
 
 
 def _forced_index(value, names, what, shape):
@@ -92,7 +92,7 @@ class EnvState:
   control_active: jax.Array  # [B] float 0/1: actions take effect in the next step
   metrics: dict  # "reward/<term>", "standing": [B]
   episode_metrics: dict  # "success", "recovery_time", "return", "scenario", "max_height",
-  #                        "time_standing": valid where done
+  #                        "time_standing", "end" (index into EPISODE_ENDS): valid where done
   step_count: jax.Array  # [B] int32 control steps since the episode start
   episode_limit: jax.Array  # [B] int32 control steps after which the episode times out
   low_steps: jax.Array  # [B] int32 consecutive controlled steps with the Trunk below low_height
@@ -300,7 +300,7 @@ class FallRecoveryEnv:
   def _zero_episode_metrics(self, batch):
     z = jnp.zeros((batch,))
     return {"success": z, "recovery_time": jnp.full((batch,), jnp.nan, jnp.float32), "return": z,
-            "scenario": z, "max_height": z, "time_standing": z}
+            "scenario": z, "max_height": z, "time_standing": z, "end": z}
 
   def stagger(self, state: EnvState, key: jax.Array) -> EnvState:
     """The same episodes with their first time limits drawn uniformly in (control start,
@@ -377,8 +377,11 @@ class FallRecoveryEnv:
 
     step_count = state.step_count + 1
     time_up = step_count >= state.episode_limit
-    low_steps, terminated = self._terminations(state, x, active)
+    low_steps, rules = self._terminations(state, x, active)
+    terminated = jnp.any(rules, axis=-1)
     done = time_up | ~finite | terminated
+    end = jnp.where(~finite, len(EPISODE_ENDS) - 1,
+                    jnp.where(terminated, 1 + jnp.argmax(rules, axis=-1), 0))
     episode_return = state.episode_return + reward
     # A blown-up step's height is the numerics', not the robot's: the episode ends on it and
     # keeps the highest height it had reached before.
@@ -391,6 +394,7 @@ class FallRecoveryEnv:
         "scenario": state.scenario.astype(jnp.float32),
         "max_height": max_height,
         "time_standing": stand_steps.astype(jnp.float32) * self.ctrl_dt,
+        "end": end.astype(jnp.float32),
     }
     obs = self._obs(view, state.draw, applied)
     priv = self._privileged(view, state.draw, push, pushing, scheduled_force)
@@ -459,19 +463,22 @@ class FallRecoveryEnv:
     return action, ok.astype(jnp.float32)
 
   def _terminations(self, state: EnvState, x: rewards_lib.Quantities, active):
-    """(low-height streak [B], terminated [B] bool) after a step; only while control is on."""
+    """(low-height streak [B], [B, len(TERMINATION_RULES)] bool: which rules end the episode
+    after this step); only while control is on, and never a rule whose threshold is 0."""
     t = self.stage.termination
-    low = (x.base_height < t.low_height) & active if t.low_height > 0 else jnp.zeros_like(active)
+    never = jnp.zeros_like(active)
+    low = (x.base_height < t.low_height) & active if t.low_height > 0 else never
     low_steps = jnp.where(low, state.low_steps + 1, 0)
-    terminated = low_steps > self.low_height_steps
-    if t.upside_down > 0:
-      terminated |= active & (x.gravity[:, 2] > t.upside_down)
-    if t.upside_down_face_down > 0:
-      face_down = x.gravity[:, 0] > 0  # the chest (Trunk +x) toward the floor
-      terminated |= active & face_down & (x.gravity[:, 2] > t.upside_down_face_down)
-    if t.side_roll > 0:
-      terminated |= active & (jnp.abs(x.gravity[:, 1]) > t.side_roll)
-    return low_steps, terminated
+    g = x.gravity
+    face_down = g[:, 0] > 0  # the chest (Trunk +x) toward the floor
+    holds = {
+        "low_height": low_steps > self.low_height_steps,
+        "upside_down": active & (g[:, 2] > t.upside_down),
+        "upside_down_face_down": active & face_down & (g[:, 2] > t.upside_down_face_down),
+        "side_roll": active & (jnp.abs(g[:, 1]) > t.side_roll),
+    }
+    on = {k: getattr(t, k) > 0 for k in TERMINATION_RULES}
+    return low_steps, jnp.stack([holds[k] if on[k] else never for k in TERMINATION_RULES], -1)
 
   # -------------------------------------------------------------------------------------------
   # Features.

@@ -136,6 +136,15 @@ class TerminationConfig:
   side_roll: float = 0.0  # |projected gravity y| above this (lying on a side) ends it
 
 
+# The termination rules, each named by its threshold's field above, in the order the environment
+# reports the first that held (`episode_metrics["end"]`).
+TERMINATION_RULES = ("low_height", "upside_down", "upside_down_face_down", "side_roll")
+# How an episode ended (the environment's `episode_metrics["end"]`, an index into this tuple): at
+# its time limit, by the first termination rule that held (no value bootstrap), or by a numerical
+# blow-up.
+EPISODE_ENDS = ("time_limit",) + TERMINATION_RULES + ("blow_up",)
+
+
 @dataclasses.dataclass(frozen=True)
 class AssistConfig:
   """An upward force on the Trunk while training, to help discover standing up (HoST's and

@@ -9,9 +9,11 @@ terrain indices, physical parameters, push schedule), so the protocol compiles o
 cell c uses key t of split(fold_in(seed_key(seed), c), trials), so a result does not depend on
 the batch size or on the other cells.
 
-Success and recovery time are the env's own `episode_metrics` of each env's first episode: the
-rollout runs exactly `episode_steps` control steps, so every first episode ends at the last step
-(or earlier on a numerical blow-up, which counts as a failure).
+Success, recovery time and how the episode ended are the env's own `episode_metrics` of each
+env's first episode: the rollout runs exactly `episode_steps` control steps, so every first
+episode ends at the last step, or earlier by one of the stage's termination rules or a numerical
+blow-up. Each cell counts its failed trials by how they ended, so that a failure the stage's
+rules end early (an upside-down dive) is told apart from one that never got up.
 """
 
 from __future__ import annotations
@@ -34,13 +36,15 @@ from jax_env.evaluation import protocols as proto_lib
 from jax_env.evaluation import stats
 from jax_env.files import write_atomic
 from jax_env.learner import train as train_lib
+from jax_env.stage_config import EPISODE_ENDS
 
 FORMAT_VERSION = 1
 FILES = ("eval.json", "eval.csv", "eval.md")
 DEFAULT_BATCH = {"mjx": 1024, "native": 128}
 CSV_FIELDS = ("experiment", "scenario", "setting", "value", "trials", "successes",
               "success_rate", "ci_low", "ci_high", "recovery_time_mean", "recovery_time_std",
-              "paper_success_rate", "paper_recovery_time_mean", "paper_recovery_time_std")
+              "paper_success_rate", "paper_recovery_time_mean", "paper_recovery_time_std"
+              ) + tuple(f"failed_{end}" for end in EPISODE_ENDS)
 EXPERIMENT_TITLES = {
     "standard": "Standard supine and prone recovery",
     "planar_push": "Planar push (forward from prone, backward from supine; 0.8 s after the "
@@ -84,8 +88,9 @@ def trial_keys(seed: int, cell_index: int, trials: int) -> np.ndarray:
 
 
 def make_rollout(env, policy: policy_lib.Policy) -> Callable:
-  """(keys [B], ConditionArrays [B]) -> (success [B], recovery_time [B], ended [B]) of the first
-  episode of each env, over exactly env.episode_steps control steps (pure; jit it)."""
+  """(keys [B], ConditionArrays [B]) -> (success [B], recovery_time [B], end [B] (index into
+  EPISODE_ENDS), ended [B]) of the first episode of each env, over exactly env.episode_steps
+  control steps (pure; jit it)."""
   act_step = policy_lib.episode_step(policy, env)
 
   def rollout(keys, arrays):
@@ -94,18 +99,17 @@ def make_rollout(env, policy: policy_lib.Policy) -> Callable:
     history = policy.initial_history(batch)
 
     def body(carry, _):
-      state, history, ended, success, recovery = carry
+      state, history, ended, record = carry
       state, history = act_step((state, history))
       first = (state.done > 0) & ~ended
-      success = jnp.where(first, state.episode_metrics["success"], success)
-      recovery = jnp.where(first, state.episode_metrics["recovery_time"], recovery)
-      return (state, history, ended | first, success, recovery), None
+      record = {k: jnp.where(first, state.episode_metrics[k], v) for k, v in record.items()}
+      return (state, history, ended | first, record), None
 
-    init = (state, history, jnp.zeros((batch,), bool), jnp.zeros((batch,)),
-            jnp.full((batch,), jnp.nan))
-    (_, _, ended, success, recovery), _ = jax.lax.scan(body, init, None,
-                                                       length=env.episode_steps)
-    return success, recovery, ended
+    record = {"success": jnp.zeros((batch,)), "recovery_time": jnp.full((batch,), jnp.nan),
+              "end": jnp.zeros((batch,))}
+    init = (state, history, jnp.zeros((batch,), bool), record)
+    (_, _, ended, record), _ = jax.lax.scan(body, init, None, length=env.episode_steps)
+    return record["success"], record["recovery_time"], record["end"], ended
 
   return rollout
 
@@ -143,15 +147,16 @@ def evaluate(request: dict, callback: Callable[[dict], str] | None = None) -> di
   rows = jax.tree_util.tree_map(np.asarray, rows)
   success = np.zeros(total, np.float32)
   recovery = np.full(total, np.nan, np.float32)
+  end = np.zeros(total, np.int32)
 
   for lo in range(0, total, batch):
     idx = np.minimum(np.arange(lo, lo + batch), total - 1)  # pad with the last trial
     arrays = jax.tree_util.tree_map(lambda x: jnp.asarray(x[idx]), rows)
-    s, t, ended = jax.device_get(rollout(jnp.asarray(keys[idx]), arrays))
+    s, t, e, ended = jax.device_get(rollout(jnp.asarray(keys[idx]), arrays))
     if not np.all(ended):
       raise RuntimeError("evaluate: an episode did not end after episode_steps control steps")
     n = min(batch, total - lo)
-    success[lo:lo + n], recovery[lo:lo + n] = s[:n], t[:n]
+    success[lo:lo + n], recovery[lo:lo + n], end[lo:lo + n] = s[:n], t[:n], e[:n]
     done = lo + n
     if callback is not None:
       answer = callback({"cells_done": done // trials, "cells_total": len(cells),
@@ -162,8 +167,8 @@ def evaluate(request: dict, callback: Callable[[dict], str] | None = None) -> di
       if answer not in (None, "continue"):
         raise ValueError(f"evaluate: callback answered {answer!r}; valid: continue, interrupt")
 
-  results = [_cell_result(cell, success[c * trials:(c + 1) * trials],
-                          recovery[c * trials:(c + 1) * trials])
+  per_cell = lambda a, c: a[c * trials:(c + 1) * trials]
+  results = [_cell_result(cell, per_cell(success, c), per_cell(recovery, c), per_cell(end, c))
              for c, cell in enumerate(cells)]
   doc = _document(r, policy, env, results)
   markdown = render_markdown(doc)
@@ -175,7 +180,8 @@ def evaluate(request: dict, callback: Callable[[dict], str] | None = None) -> di
   return {"status": "completed", "files": files, "markdown": markdown}
 
 
-def _cell_result(cell: proto_lib.Cell, success: np.ndarray, recovery: np.ndarray) -> dict:
+def _cell_result(cell: proto_lib.Cell, success: np.ndarray, recovery: np.ndarray,
+                 end: np.ndarray) -> dict:
   ok = success > 0.5
   n, k = int(success.shape[0]), int(ok.sum())
   low, high = stats.wilson_interval(k, n)
@@ -187,6 +193,7 @@ def _cell_result(cell: proto_lib.Cell, success: np.ndarray, recovery: np.ndarray
       "paper_success_rate": cell.paper_success_rate,
       "paper_recovery_time": (None if cell.paper_recovery_time is None
                               else list(cell.paper_recovery_time)),
+      "failures": {name: int(np.sum(~ok & (end == i))) for i, name in enumerate(EPISODE_ENDS)},
       "condition": cell.condition.to_dict(),
   }
 
@@ -211,6 +218,7 @@ def render_csv(results: list[dict]) -> str:
     row = {k: c.get(k) for k in CSV_FIELDS}
     row.update(ci_low=c["ci95"][0], ci_high=c["ci95"][1], paper_recovery_time_mean=paper_t[0],
                paper_recovery_time_std=paper_t[1])
+    row.update({f"failed_{end}": n for end, n in c["failures"].items()})
     w.writerow({k: "" if v is None else v for k, v in row.items()})
   return out.getvalue()
 
@@ -227,6 +235,17 @@ def _entry(c: dict) -> str:
 
 def _time(mean, std) -> str:
   return "—" if mean is None else f"{mean:.3f} ± {std:.3f}"
+
+
+def _failures(counts: dict[str, int]) -> str:
+  """Failed trials by how their episode ended: "2 at the time limit, 6 upside down face down"."""
+  words = {"time_limit": "at the time limit", "blow_up": "numerical blow-up"}
+  parts = [f"{n} {words.get(end, end.replace('_', ' '))}" for end, n in counts.items() if n]
+  return ", ".join(parts) or "—"
+
+
+def _failures_over(cells: list[dict]) -> dict[str, int]:
+  return {end: sum(c["failures"][end] for c in cells) for end in EPISODE_ENDS}
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
@@ -273,12 +292,15 @@ def render_markdown(doc: dict) -> str:
       rows = [[f"`{c['scenario']}`", _pct(c["success_rate"]),
                f"{100 * c['ci95'][0]:.0f}–{100 * c['ci95'][1]:.0f}%",
                f"{c['successes']}/{c['trials']}",
-               _time(c["recovery_time_mean"], c["recovery_time_std"])] for c in cells]
+               _time(c["recovery_time_mean"], c["recovery_time_std"]),
+               _failures(c["failures"])] for c in cells]
       lines += _table(["Start state", "Success rate", "95 % Wilson interval", "Successes",
-                       "Recovery time (s)"], rows)
+                       "Recovery time (s)", "Failed trials ended"], rows)
       lines += ["", "Every start state under the standard setup (no push, nominal mass and "
                 "friction, no randomization); `stand` starts standing and succeeds by staying "
-                "up. The paper reports no such table."]
+                "up. A failed trial ends at the time limit or earlier, by a termination rule "
+                "of the policy's stage (`[stage.termination]`). The paper reports no such "
+                "table."]
     else:
       settings = list(dict.fromkeys(c["setting"] for c in cells))
       row_of = lambda c: proto_lib.table_row(exp, c["scenario"])
@@ -288,6 +310,8 @@ def render_markdown(doc: dict) -> str:
       rows = [[name.capitalize()] + [_entry(index[(name, s)]) if (name, s) in index else ""
                                      for s in settings] for name in row_names]
       lines += _table(header, rows)
+    if exp != "keystate" and any(_failures_over(cells).values()):
+      lines += ["", f"Failed trials ended: {_failures(_failures_over(cells))}."]
     lines.append("")
   return "\n".join(lines)
 

@@ -44,6 +44,7 @@ from jax_env.learner import monitor as monitor_lib
 from jax_env.learner import networks as nets_lib
 from jax_env.learner import ppo as ppo_lib
 from jax_env.learner import rma as rma_lib
+from jax_env.stage_config import EPISODE_ENDS
 
 AXIS = "i"
 ANSWERS = ("continue", "finish", "interrupt")
@@ -237,6 +238,9 @@ def _step_stats(nxt) -> dict[str, jax.Array]:
   for k in EPISODE_MEANS:
     if k in em:  # optional episode metrics of the environment API
       stats[k] = jnp.sum(done * em[k])
+  if "end" in em:  # optional: how episodes ended, an index into EPISODE_ENDS
+    for i, name in enumerate(EPISODE_ENDS):
+      stats[f"end/{name}"] = jnp.sum(done * (em["end"] == i))
   for k, v in nxt.metrics.items():
     if k.startswith("reward/"):
       stats[k] = jnp.sum(v)
@@ -256,6 +260,9 @@ def _summarize(stats: Mapping[str, Any]) -> dict[str, Any]:
       "recovery_time": s["recovery_time"] / successes if successes > 0 else None,
       "episode_return": per_episode("return"),
       **{k: per_episode(k) for k in EPISODE_MEANS if k in s},
+      # The share of the ended episodes that ended each way (time limit, a termination rule).
+      **({"episode_ends": {n: per_episode(f"end/{n}") for n in EPISODE_ENDS}}
+         if f"end/{EPISODE_ENDS[0]}" in s else {}),
   }
 
 

@@ -25,6 +25,7 @@ from jax_env.learner import ppo as ppo_lib
 from jax_env.learner import train as train_lib
 from jax_env.names import SCENARIOS, TERRAINS
 from jax_env.paths import REPO_ROOT
+from jax_env.stage_config import EPISODE_ENDS
 
 
 def _full_stage() -> dict:
@@ -408,14 +409,32 @@ def test_keystate_evaluation_reports_every_start_state(fresh_checkpoint, tmp_pat
     assert c["ci95"] == pytest.approx(list(stats.wilson_interval(c["successes"], 2)))
     assert c["paper_success_rate"] is None and c["paper_recovery_time"] is None
     assert c["condition"] == cond_lib.Condition(scenario=c["scenario"]).to_dict()
+    # Every failed trial counted once by how it ended; this stage has no termination rules.
+    assert set(c["failures"]) == set(EPISODE_ENDS)
+    assert c["failures"]["time_limit"] == c["trials"] - c["successes"]
+    assert sum(c["failures"].values()) == c["trials"] - c["successes"]
   md = result["markdown"]
   assert "## Start states of the key-state curriculum (nominal conditions)" in md
-  assert "| Start state | Success rate | 95 % Wilson interval | Successes | Recovery time (s) |" \
-      in md
+  assert ("| Start state | Success rate | 95 % Wilson interval | Successes | Recovery time (s) | "
+          "Failed trials ended |") in md
   assert "| `stand` | " in md and "| `ksi_supine_3` | " in md and "| `prone` | " in md
   assert "the paper's (Webots" not in md  # no paper numbers in this protocol
   rows = (tmp_path / "k" / "eval.csv").read_text().splitlines()
   assert len(rows) == 1 + 9 and rows[1].startswith("keystate,stand,stand,,2,")
+  failed = [c["trials"] - c["successes"] for c in cells]
+  assert [int(r.split(",")[runner.CSV_FIELDS.index("failed_time_limit")]) for r in rows[1:]] \
+      == failed
+  lying = cells[protocols.KEYSTATE_CELLS.index("supine")]
+  assert lying["successes"] == 0  # an untrained policy does not get up from lying
+  assert "| `supine` | 0% | " in md and "| 2 at the time limit |" in md
+
+
+def test_failed_trials_are_described_by_how_they_ended():
+  counts = dict.fromkeys(EPISODE_ENDS, 0)
+  assert runner._failures(counts) == "—"
+  counts.update(time_limit=2, upside_down_face_down=6, blow_up=1)
+  assert runner._failures(counts) == (
+      "2 at the time limit, 6 upside down face down, 1 numerical blow-up")
 
 
 def test_an_untrained_adaptation_module_is_refused(fresh_checkpoint, tmp_path):

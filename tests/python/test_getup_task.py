@@ -18,6 +18,7 @@ from jax_env.config import StageConfig
 from jax_env.defaults import default_stage_dict
 from jax_env.names import SCENARIOS
 from jax_env.env import FallRecoveryEnv
+from jax_env.stage_config import EPISODE_ENDS
 from jax_env.kinematics import axis_angle_quat, rotate_inverse
 from jax_env.learner import monitor as monitor_lib
 from jax_env.learner import networks as nets_lib
@@ -179,12 +180,16 @@ def _reset_to_pose(env, quat, height, n=B):
 
 
 def _run(env, state, steps):
+  """(done, truncation, how it ended: a name of EPISODE_ENDS, or None while it runs) of the first
+  env after each of `steps` zero-action steps."""
   step = jax.jit(env.step)
   a = jnp.zeros((state.obs.shape[0], env.action_size))
   out = []
   for _ in range(steps):
     state = step(state, a)
-    out.append((float(state.done[0]), float(state.truncation[0])))
+    done = float(state.done[0])
+    end = EPISODE_ENDS[int(state.episode_metrics["end"][0])] if done else None
+    out.append((done, float(state.truncation[0]), end))
   return out
 
 
@@ -194,18 +199,18 @@ def test_terminations_end_episodes_without_bootstrap():
   x = np.array([1.0, 0.0, 0.0])
   # Upside down (head on the floor): ends at the first controlled step.
   upside = axis_angle_quat(jnp.asarray(x, jnp.float32), math.pi)
-  assert _run(env, _reset_to_pose(env, upside, 0.8), 1) == [(1.0, 0.0)]
+  assert _run(env, _reset_to_pose(env, upside, 0.8), 1) == [(1.0, 0.0, "upside_down")]
   # On its side: ends at once too.
   side = axis_angle_quat(jnp.asarray(x, jnp.float32), math.pi / 2)
-  assert _run(env, _reset_to_pose(env, side, 0.3), 1) == [(1.0, 0.0)]
+  assert _run(env, _reset_to_pose(env, side, 0.3), 1) == [(1.0, 0.0, "side_roll")]
   # Lying on the back below 0.3 m: ends after more than low_height_s = 5 steps, not before.
   y = jnp.asarray([0.0, 1.0, 0.0], jnp.float32)
   supine = axis_angle_quat(y, -math.pi / 2)
   ends = _run(env, _reset_to_pose(env, supine, 0.15), 6)
-  assert ends[:5] == [(0.0, 0.0)] * 5 and ends[5] == (1.0, 0.0)
+  assert ends[:5] == [(0.0, 0.0, None)] * 5 and ends[5] == (1.0, 0.0, "low_height")
   # Without the termination table nothing ends early.
   plain = FallRecoveryEnv(_stage(), backend="native")
-  assert all(d == 0.0 for d, _ in _run(plain, _reset_to_pose(plain, supine, 0.15), 6))
+  assert all(d == 0.0 for d, _, _ in _run(plain, _reset_to_pose(plain, supine, 0.15), 6))
 
 
 def test_face_down_limit_ends_the_head_first_dive_not_the_rock_back():
@@ -218,8 +223,9 @@ def test_face_down_limit_ends_the_head_first_dive_not_the_rock_back():
   down = jnp.asarray([0.0, 0.0, -1.0])
   assert np.allclose(rotate_inverse(dive_quat, down), [0.5, 0.0, 0.866], atol=1e-3)
   assert np.allclose(rotate_inverse(rock_back_quat, down), [-0.5, 0.0, 0.866], atol=1e-3)
-  assert _run(env, _reset_to_pose(env, dive_quat, 0.5), 1) == [(1.0, 0.0)]
-  assert _run(env, _reset_to_pose(env, rock_back_quat, 0.5), 1) == [(0.0, 0.0)]
+  assert _run(env, _reset_to_pose(env, dive_quat, 0.5), 1) == [
+      (1.0, 0.0, "upside_down_face_down")]
+  assert _run(env, _reset_to_pose(env, rock_back_quat, 0.5), 1) == [(0.0, 0.0, None)]
 
 
 def test_staggered_clocks_end_first_episodes_at_different_steps(upright_env):
@@ -238,6 +244,8 @@ def test_staggered_clocks_end_first_episodes_at_different_steps(upright_env):
     done, trunc = np.asarray(state.done), np.asarray(state.truncation)
     first = (done > 0) & (ended_at < 0)
     assert np.all(trunc[first] == 1.0)  # a time-out, bootstrapped
+    end = np.asarray(state.episode_metrics["end"])
+    assert np.all(end[first] == EPISODE_ENDS.index("time_limit"))
     ended_at[first] = t + 1
   assert np.array_equal(ended_at, limit)
   # The episodes that follow run the full length.

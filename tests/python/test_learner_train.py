@@ -6,12 +6,16 @@ function), so the two jitted iteration functions are compiled once and then come
 persistent compilation cache.
 """
 
+import types
+
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import safetensors.numpy
 
 from jax_env.learner import checkpoint as ckpt_lib
 from jax_env.learner import train
+from jax_env.stage_config import EPISODE_ENDS
 from toy_env import ToyStandUpEnv, learner_config
 
 ITER_STEPS = 64 * 32  # num_envs × unroll_length of learner_config()
@@ -305,3 +309,21 @@ def test_a_new_best_monitor_point_is_at_least_as_good_as_the_best_so_far():
   assert train.is_new_best(None, 0.0)
   assert train.is_new_best(0.5, 0.5)  # the latest of equals: the more trained policy
   assert not train.is_new_best(0.5, 0.25)
+
+
+def test_episode_ends_are_shares_of_the_ended_episodes():
+  # Three episodes end (one at its time limit, two by the face-down rule); the fourth runs on.
+  zeros = jnp.zeros(4)
+  end = jnp.asarray([EPISODE_ENDS.index(n) for n in
+                     ("time_limit", "upside_down_face_down", "upside_down_face_down",
+                      "low_height")], jnp.float32)
+  nxt = types.SimpleNamespace(
+      done=jnp.asarray([1.0, 1.0, 1.0, 0.0]), metrics={},
+      episode_metrics={"success": jnp.asarray([1.0, 0.0, 0.0, 0.0]), "return": zeros,
+                       "recovery_time": jnp.asarray([0.5, jnp.nan, jnp.nan, jnp.nan]),
+                       "end": end})
+  out = train._summarize(train._step_stats(nxt))
+  assert out["stand_rate"] == pytest.approx(1 / 3)
+  expected = dict.fromkeys(EPISODE_ENDS, 0.0)
+  expected.update(time_limit=1 / 3, upside_down_face_down=2 / 3)
+  assert out["episode_ends"] == pytest.approx(expected)
