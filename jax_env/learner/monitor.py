@@ -9,7 +9,8 @@ stage's terminations apply, as in `hifar eval`, so that a get-up through a termi
 head down past `termination.upside_down` — counts as the failure the evaluation will call it)
 with the mean action of the training-time policy, and reports per scenario: the stand rate
 (stable standing held for success.hold_s, the paper's criterion), the mean recovery time of the
-successes and the mean highest Trunk height.
+successes, the mean highest Trunk height, and the share of episodes a termination rule ended
+(a get-up that a rule cuts short reads here, not as a failure to rise).
 
 The episodes' keys come from the stage seed alone (`MONITOR_SEED_SALT`), the same at every
 monitor call, so successive numbers differ only by the policy.
@@ -42,13 +43,16 @@ class Monitor:
   def __call__(self, params, normalizer) -> dict:
     out = jax.device_get(self.run(params, normalizer))
     per = {k: np.asarray(v).reshape(len(self.scenarios), self.episodes) for k, v in out.items()}
-    result: dict[str, Any] = {"stand_rate": {}, "recovery_time": {}, "max_height": {}}
+    result: dict[str, Any] = {"stand_rate": {}, "recovery_time": {}, "max_height": {},
+                              "terminated": {}}
+    rules = [stage_config.EPISODE_ENDS.index(r) for r in stage_config.TERMINATION_RULES]
     for i, name in enumerate(self.scenarios):
       success = per["success"][i] > 0
       result["stand_rate"][name] = float(np.mean(success))
       times = per["recovery_time"][i][success]
       result["recovery_time"][name] = float(np.mean(times)) if times.size else None
       result["max_height"][name] = float(np.mean(per["max_height"][i]))
+      result["terminated"][name] = float(np.mean(np.isin(per["end"][i], rules)))
     result["mean_stand_rate"] = float(np.mean(list(result["stand_rate"].values())))
     return result
 
@@ -70,7 +74,7 @@ def make_monitor(config: stage_config.MonitorConfig | None,
                        jnp.int32)
   keys = jax.random.split(jax.random.fold_in(seed_key, MONITOR_SEED_SALT), forced.shape[0])
   steps = env.episode_steps
-  names = ("success", "recovery_time", "max_height")
+  names = ("success", "recovery_time", "max_height", "end")
 
   @jax.jit
   def run(params, normalizer):

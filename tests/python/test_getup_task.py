@@ -438,6 +438,7 @@ def test_monitor_reports_a_held_stand_as_standing():
   assert out["recovery_time"]["supine"] is None
   assert out["max_height"]["stand"] > 0.6 > out["max_height"]["supine"]
   assert out["mean_stand_rate"] == pytest.approx(0.5)
+  assert out["terminated"] == {"stand": 0.0, "supine": 0.0}  # no termination rules here
   assert monitor(params, normalizer) == out  # the same episodes every call
 
 
@@ -451,4 +452,5 @@ def test_monitor_applies_the_stage_terminations_as_the_evaluation_does():
   monitor = monitor_lib.make_monitor(
       config.MonitorConfig(every=1, episodes=2, scenarios=("stand",)), table, nets, "native",
       jax.random.PRNGKey(4))
-  assert monitor(params, normalizer)["stand_rate"] == {"stand": 0.0}
+  out = monitor(params, normalizer)
+  assert out["stand_rate"] == {"stand": 0.0} and out["terminated"] == {"stand": 1.0}
