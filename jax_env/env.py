@@ -380,8 +380,10 @@ class FallRecoveryEnv:
     low_steps, rules = self._terminations(state, x, active)
     terminated = jnp.any(rules, axis=-1)
     done = time_up | ~finite | terminated
-    end = jnp.where(~finite, len(EPISODE_ENDS) - 1,
-                    jnp.where(terminated, 1 + jnp.argmax(rules, axis=-1), 0))
+    # EPISODE_ENDS is the time limit, then the rules in `rules`' column order, then a blow-up.
+    end = jnp.where(~finite, EPISODE_ENDS.index("blow_up"),
+                    jnp.where(terminated, 1 + jnp.argmax(rules, axis=-1),
+                              EPISODE_ENDS.index("time_limit")))
     episode_return = state.episode_return + reward
     # A blown-up step's height is the numerics', not the robot's: the episode ends on it and
     # keeps the highest height it had reached before.

@@ -310,8 +310,9 @@ def render_markdown(doc: dict) -> str:
       rows = [[name.capitalize()] + [_entry(index[(name, s)]) if (name, s) in index else ""
                                      for s in settings] for name in row_names]
       lines += _table(header, rows)
-    if exp != "keystate" and any(_failures_over(cells).values()):
-      lines += ["", f"Failed trials ended: {_failures(_failures_over(cells))}."]
+    failures = _failures_over(cells)
+    if exp != "keystate" and any(failures.values()):
+      lines += ["", f"Failed trials ended: {_failures(failures)}."]
     lines.append("")
   return "\n".join(lines)
 
