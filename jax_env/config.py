@@ -534,7 +534,8 @@ class _Parser:
 
   def termination(self, d):
     p = ["termination"]
-    gravity_limits = TERMINATION_RULES[1:]  # components of the unit gravity vector, ≤ 1
+    # components of the unit gravity vector, ≤ 1
+    gravity_limits = TERMINATION_RULES[1:] + ("upside_down_face_down_max_roll",)
     keys = ("low_height", "low_height_s") + gravity_limits
     d = self._section(d, "termination", (), keys)
     default = TerminationConfig()

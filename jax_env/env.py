@@ -473,6 +473,8 @@ class FallRecoveryEnv:
     low_steps = jnp.where(low, state.low_steps + 1, 0)
     g = x.gravity
     face_down = g[:, 0] > 0  # the chest (Trunk +x) toward the floor
+    if t.upside_down_face_down_max_roll > 0:  # pitched over the head, not rolling over a shoulder
+      face_down = face_down & (jnp.abs(g[:, 1]) < t.upside_down_face_down_max_roll)
     holds = {
         "low_height": low_steps > self.low_height_steps,
         "upside_down": active & (g[:, 2] > t.upside_down),

@@ -133,6 +133,10 @@ class TerminationConfig:
   # dive from the kneel, apart from the supine get-up's rock-back onto the shoulders (face up),
   # which reaches the same g_z
   upside_down_face_down: float = 0.0
+  # ... but only while |projected gravity y| is below this: the pike and the dive pitch over the
+  # head (g_y near 0), the get-up from the kneel rolls out over a shoulder (|g_y| 0.27–0.59 as it
+  # passes g_z 0.6, docs/experiments.md); 0: no exception
+  upside_down_face_down_max_roll: float = 0.0
   side_roll: float = 0.0  # |projected gravity y| above this (lying on a side) ends it
 
 

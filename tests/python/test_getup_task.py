@@ -19,7 +19,7 @@ from jax_env.defaults import default_stage_dict
 from jax_env.names import SCENARIOS
 from jax_env.env import FallRecoveryEnv
 from jax_env.stage_config import EPISODE_ENDS
-from jax_env.kinematics import axis_angle_quat, rotate_inverse
+from jax_env.kinematics import axis_angle_quat, quat_mul, rotate_inverse
 from jax_env.learner import monitor as monitor_lib
 from jax_env.learner import networks as nets_lib
 from jax_env.learner import ppo as ppo_lib
@@ -228,6 +228,27 @@ def test_face_down_limit_ends_the_head_first_dive_not_the_rock_back():
   assert _run(env, _reset_to_pose(env, rock_back_quat, 0.5), 1) == [(0.0, 0.0, None)]
 
 
+def test_face_down_limit_spares_the_roll_over_a_shoulder():
+  # The same dive, turned 60° about the spine: chest down, head down (g_z 0.87) and over a
+  # shoulder (|g_y| 0.43), as the get-up from the kneel rolls out. With a roll limit of 0.3 the
+  # face-down rule spares it (the plain upside-down limit still applies); the straight dive
+  # (g_y 0) still ends; without the limit both end.
+  y, z = (jnp.asarray(v, jnp.float32) for v in ([0.0, 1.0, 0.0], [0.0, 0.0, 1.0]))
+  dive_quat = axis_angle_quat(y, math.pi * 5 / 6)
+  roll_quat = quat_mul(dive_quat, axis_angle_quat(z, math.pi / 3))
+  g = rotate_inverse(roll_quat, jnp.asarray([0.0, 0.0, -1.0]))
+  assert g[0] > 0 and abs(g[1]) > 0.4 and g[2] > 0.86
+  term = {"upside_down": 0.9, "upside_down_face_down": 0.8}
+  spared = FallRecoveryEnv(
+      _stage(termination=term | {"upside_down_face_down_max_roll": 0.3}), backend="native")
+  assert _run(spared, _reset_to_pose(spared, roll_quat, 0.5), 1) == [(0.0, 0.0, None)]
+  assert _run(spared, _reset_to_pose(spared, dive_quat, 0.5), 1) == [
+      (1.0, 0.0, "upside_down_face_down")]
+  strict = FallRecoveryEnv(_stage(termination=term), backend="native")
+  assert _run(strict, _reset_to_pose(strict, roll_quat, 0.5), 1) == [
+      (1.0, 0.0, "upside_down_face_down")]
+
+
 def test_staggered_clocks_end_first_episodes_at_different_steps(upright_env):
   env = upright_env
   n = 16
@@ -389,12 +410,14 @@ def test_new_sections_are_validated_with_key_paths():
   d = default_stage_dict("planar")
   d["reward_shaping"] = {"clip_at_zero": "yes",
                          "penalty_schedule": {"by": "env_steps", "points": [[10, 1], [5, 1]]}}
-  d["termination"] = {"upside_down": 1.5, "low_hieght": 0.2}
+  d["termination"] = {"upside_down": 1.5, "upside_down_face_down_max_roll": 1.2,
+                      "low_hieght": 0.2}
   d["monitor"] = {"every": 5, "scenarios": ["stand", "kneeling"]}
   paths = sorted(tuple(e["path"]) for e in config.check_stage(d))
   assert paths == sorted([("reward_shaping", "clip_at_zero"),
                           ("reward_shaping", "penalty_schedule", "points", 1),
                           ("termination", "low_hieght"), ("termination", "upside_down"),
+                          ("termination", "upside_down_face_down_max_roll"),
                           ("monitor", "scenarios", 1)])
 
 

@@ -226,6 +226,8 @@ pub struct Termination {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub upside_down_face_down: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub upside_down_face_down_max_roll: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub side_roll: Option<f64>,
 }
 

@@ -301,7 +301,7 @@ fn new_optional_keys_parse_and_reach_python_as_written() {
 fn mistakes_in_the_new_tables_have_a_position() {
     let text = tiny_with_new_keys();
     let cases: &[(&str, &str, &str, &str)] = &[
-        ("low_height_s = 1.0", "low_heigth_s = 1.0", "low_heigth_s", "unknown key `low_heigth_s` in [stage.termination]; valid keys: `low_height`, `low_height_s`, `upside_down`, `upside_down_face_down`, `side_roll`"),
+        ("low_height_s = 1.0", "low_heigth_s = 1.0", "low_heigth_s", "unknown key `low_heigth_s` in [stage.termination]; valid keys: `low_height`, `low_height_s`, `upside_down`, `upside_down_face_down`, `upside_down_face_down_max_roll`, `side_roll`"),
         ("clip_at_zero = false", "clip_at_zero = 0", "clip_at_zero", "reward_shaping.clip_at_zero: invalid type: integer `0`, expected a boolean"),
         ("episodes = 4", "episodes = -4", "episodes", "monitor.episodes: invalid value: integer `-4`, expected a non-negative integer"),
         ("keep_best = true", "keep_best = 1", "keep_best", "monitor.keep_best: invalid type: integer `1`, expected a boolean"),
