@@ -45,6 +45,7 @@ class EvaluateRequest:
   protocol: str
   trials: int | None = None
   backend: str
+  actor: str | None = None  # None: the deployable actor (evaluation.policy.ACTORS)
   seed: int = 0
   out_dir: str
   batch_size: int | None = None

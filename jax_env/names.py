@@ -18,7 +18,7 @@ import json
 from pathlib import Path
 
 from jax_env import features, physics, randomization, rewards, robot, scenarios, stage_config
-from jax_env.evaluation import conditions
+from jax_env.evaluation import conditions, policy
 from jax_env.learner import networks
 
 JOINT_NAMES: tuple[str, ...] = robot.JOINT_NAMES
@@ -36,6 +36,8 @@ DR_PARAMS: tuple[str, ...] = randomization.DR_PARAMS
 ACTIVATIONS: tuple[str, ...] = tuple(networks.ACTIVATIONS)
 PUSH_DIRECTIONS: tuple[str, ...] = tuple(conditions.PUSH_DIRECTIONS)
 PHYSICS_BACKENDS: tuple[str, ...] = physics.BACKENDS
+# The actors `hifar eval --actor` offers, the deployable one first (the default).
+ACTORS: tuple[str, ...] = policy.ACTORS
 
 NAMES_JSON = Path(__file__).with_name("names.json")
 
@@ -61,6 +63,7 @@ def export() -> dict:
       "schedule_keys": list(stage_config.SCHEDULE_KEYS),
       "push_directions": list(PUSH_DIRECTIONS),
       "physics_backends": list(PHYSICS_BACKENDS),
+      "actors": list(ACTORS),
       "features": features.export(),
   }
 

@@ -181,10 +181,17 @@ pub struct EvalArgs {
     /// Physics backend [default: the machine's default, see `hifar doctor`].
     #[arg(long, value_parser = physics_backend())]
     pub backend: Option<String>,
+    /// The actor that acts: `deployable` (the default: adaptation module + base policy, as on
+    /// the robot) or `privileged` (the base policy with the encoder's latent from the
+    /// simulator's state: the actor PPO trains and the training monitor measures; not
+    /// deployable, it shows what the adaptation module loses and evaluates checkpoints of a
+    /// stage's PPO phase).
+    #[arg(long, value_parser = actor(), value_name = "ACTOR")]
+    pub actor: Option<String>,
     /// Seed of every random draw of the evaluation.
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub seed: u64,
-    /// Output directory [default: <run>/eval/<protocol>-<backend> or <checkpoint>/eval/<protocol>-<backend>].
+    /// Output directory [default: <run>/eval/<protocol>-<backend> or <checkpoint>/eval/<protocol>-<backend>, with -<actor> after a non-default actor].
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
     /// Replace an existing output directory.
@@ -258,6 +265,11 @@ fn one_of_help(what: &str, names: &[&str]) -> String {
         Some((last, rest)) if !rest.is_empty() => format!("{what}: {} or {last}", rest.join(", ")),
         _ => format!("{what}: {}", names.join("")),
     }
+}
+
+/// `--actor`: one of the actors jax_env exports.
+fn actor() -> PossibleValuesParser {
+    PossibleValuesParser::new(names().actors.iter().copied())
 }
 
 /// `--backend`: one of the physics backends jax_env exports.

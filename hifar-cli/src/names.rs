@@ -50,6 +50,9 @@ pub struct Names<'a> {
     pub push_directions: Vec<&'a str>,
     #[serde(borrow)]
     pub physics_backends: Vec<&'a str>,
+    /// The actors `hifar eval` can act with, the deployable one first (the default).
+    #[serde(borrow)]
+    pub actors: Vec<&'a str>,
     #[serde(borrow)]
     pub features: FeatureLayout<'a>,
 }

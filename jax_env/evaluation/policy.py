@@ -3,6 +3,12 @@
 Evaluation, recordings and export act exactly as the robot would: observations and their
 history in, the adaptation module's latent and the base policy's mean out (no privileged
 inputs, no sampling). The history is updated the way the learner updates it in training.
+
+Evaluation can instead act with the `privileged` actor: the same base policy with the latent of
+the environment-factor encoder, read from the simulator's privileged state — the actor PPO
+trains and the training monitor measures (learner/monitor.py). It cannot be deployed; it tells
+how much of a policy's stand rate the adaptation module loses, and it can evaluate a checkpoint
+of a stage's PPO phase, whose adaptation module is not trained yet.
 """
 
 from __future__ import annotations
@@ -16,6 +22,12 @@ import jax.numpy as jnp
 
 from jax_env.learner import checkpoint as ckpt_lib
 from jax_env.learner import networks as nets_lib
+
+# The actors an evaluation can act with (names.json "actors"; `hifar eval --actor`); the first
+# is the default and the only one `act`, `rollout` and `export` use.
+DEPLOYABLE = "deployable"
+PRIVILEGED = "privileged"
+ACTORS = (DEPLOYABLE, PRIVILEGED)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,11 +80,15 @@ def check_adaptation_trained(meta: dict, checkpoint_dir: str | Path) -> None:
       "rma.adaptation_env_steps > 0 or evaluate a later checkpoint")
 
 
-def load(checkpoint_dir: str | Path) -> Policy:
-  """The deployable actor of a checkpoint (refused if its adaptation module is untrained)."""
+def load(checkpoint_dir: str | Path, actor: str = DEPLOYABLE) -> Policy:
+  """A checkpoint's policy for `actor` (the deployable one is refused while its adaptation
+  module is untrained; the privileged one does not read that module)."""
+  if actor not in ACTORS:
+    raise ValueError(f"actor {actor!r} is not one of {', '.join(ACTORS)}")
   d = Path(checkpoint_dir)
   ck = ckpt_lib.load(d)
-  check_adaptation_trained(ck.meta, d)
+  if actor == DEPLOYABLE:
+    check_adaptation_trained(ck.meta, d)
   nets = nets_lib.Networks(ck.network_config())
   params, normalizer = ckpt_lib.restore_params(nets, ck.tensors)
   return Policy(directory=d, meta=ckpt_lib.read_meta(d), nets=nets, params=params,
@@ -100,15 +116,21 @@ def check_features(policy: Policy, env) -> None:
     raise ValueError(f"{policy.directory}: the checkpoint's action_names differ from the stage's")
 
 
-def episode_step(policy: Policy, env) -> Callable:
-  """(env_state, history) -> (env_state, history): one control step of the deployable actor.
+def episode_step(policy: Policy, env, actor: str = DEPLOYABLE) -> Callable:
+  """(env_state, history) -> (env_state, history): one control step of `actor`.
 
   Compose it with `jax.lax.scan`; the history resets where an episode ended, as in training.
   """
 
+  def act(state, history):
+    if actor == PRIVILEGED:
+      return nets_lib.privileged_mean(policy.nets, policy.params, policy.normalizer, state.obs,
+                                      state.privileged)
+    return policy.act(state.obs, history)
+
   def step(carry):
     state, history = carry
-    action = policy.act(state.obs, history)
+    action = act(state, history)
     nxt = env.step(state, action)
     return nxt, nets_lib.push_history(history, state.obs, nxt.done)
 

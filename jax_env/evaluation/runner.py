@@ -68,6 +68,8 @@ def _validate(request: dict) -> dict:
   protocol = facade_requests.check_choice("evaluate", "protocol", req.protocol,
                                           tuple(proto_lib.PROTOCOLS))
   backend = facade_requests.check_backend("evaluate", req.backend)
+  actor = (policy_lib.DEPLOYABLE if req.actor is None else
+           facade_requests.check_choice("evaluate", "actor", req.actor, policy_lib.ACTORS))
   trials = proto_lib.DEFAULT_TRIALS[protocol] if req.trials is None else int(req.trials)
   if trials < 1:
     raise ValueError(f"evaluate: trials {trials} must be >= 1")
@@ -78,7 +80,7 @@ def _validate(request: dict) -> dict:
   if not 0 <= seed < 2**64:
     raise ValueError(f"evaluate: seed {seed} is not a u64")
   return dict(checkpoint=Path(req.checkpoint), stage=req.stage, protocol=protocol,
-              trials=trials, backend=backend, seed=seed, out_dir=Path(req.out_dir),
+              trials=trials, backend=backend, actor=actor, seed=seed, out_dir=Path(req.out_dir),
               batch_size=None if batch is None else int(batch))
 
 
@@ -87,11 +89,12 @@ def trial_keys(seed: int, cell_index: int, trials: int) -> np.ndarray:
   return np.asarray(jax.random.split(jax.random.fold_in(train_lib.seed_key(seed), cell_index), trials))
 
 
-def make_rollout(env, policy: policy_lib.Policy) -> Callable:
+def make_rollout(env, policy: policy_lib.Policy,
+                 actor: str = policy_lib.DEPLOYABLE) -> Callable:
   """(keys [B], ConditionArrays [B]) -> (success [B], recovery_time [B], end [B] (index into
   EPISODE_ENDS), ended [B]) of the first episode of each env, over exactly env.episode_steps
   control steps (pure; jit it)."""
-  act_step = policy_lib.episode_step(policy, env)
+  act_step = policy_lib.episode_step(policy, env, actor)
 
   def rollout(keys, arrays):
     batch = keys.shape[0]
@@ -114,31 +117,32 @@ def make_rollout(env, policy: policy_lib.Policy) -> Callable:
   return rollout
 
 
-def _compiled(policy: policy_lib.Policy, stage: dict, backend: str, batch: int):
+def _compiled(policy: policy_lib.Policy, stage: dict, backend: str, batch: int, actor: str):
   from jax_env.env import FallRecoveryEnv
 
   checkpoint = policy.directory
   params = checkpoint / "params.safetensors"
   stamp = params.stat().st_mtime_ns if params.exists() else None
-  key = (str(checkpoint.resolve()), stamp, json.dumps(stage, sort_keys=True), backend, batch)
+  key = (str(checkpoint.resolve()), stamp, json.dumps(stage, sort_keys=True), backend, batch,
+         actor)
   if key not in _ROLLOUTS:
     env = FallRecoveryEnv(cond_lib.evaluation_stage(stage), backend=backend)
     policy_lib.check_features(policy, env)
     _ROLLOUTS.clear()  # one policy at a time: compiled rollouts hold their constants
-    _ROLLOUTS[key] = (policy, env, jax.jit(make_rollout(env, policy)))
+    _ROLLOUTS[key] = (policy, env, jax.jit(make_rollout(env, policy, actor)))
   return _ROLLOUTS[key]
 
 
 def evaluate(request: dict, callback: Callable[[dict], str] | None = None) -> dict:
   """Runs the protocol; see docs/contracts.md for the request, progress and result keys."""
   r = _validate(request)
-  loaded = policy_lib.load(r["checkpoint"])
+  loaded = policy_lib.load(r["checkpoint"], r["actor"])
   stage = policy_lib.stage_of(loaded, r["stage"])
   cells = proto_lib.cells(r["protocol"])
   trials = r["trials"]
   total = len(cells) * trials
   batch = min(r["batch_size"] or DEFAULT_BATCH[r["backend"]], total)
-  policy, env, rollout = _compiled(loaded, stage, r["backend"], batch)
+  policy, env, rollout = _compiled(loaded, stage, r["backend"], batch, r["actor"])
 
   # The flat trial list: (cell index, key), with the conditions as rows of data.
   cell_of = np.repeat(np.arange(len(cells)), trials)
@@ -203,7 +207,7 @@ def _document(r: dict, policy: policy_lib.Policy, env, results: list[dict]) -> d
   setup.update(push_start_s=proto_lib.PUSH_START_S, push_duration_s=proto_lib.PUSH_DURATION_S)
   return {
       "format_version": FORMAT_VERSION, "protocol": r["protocol"], "backend": r["backend"],
-      "seed": r["seed"], "trials": r["trials"], "checkpoint": str(r["checkpoint"].resolve()),
+      "actor": r["actor"], "seed": r["seed"], "trials": r["trials"], "checkpoint": str(r["checkpoint"].resolve()),
       "stage": policy.meta.get("stage"), "env_steps": policy.meta.get("env_steps"),
       "versions": versions_lib.versions(), "conditions": setup, "cells": results,
   }
@@ -221,6 +225,13 @@ def render_csv(results: list[dict]) -> str:
     row.update({f"failed_{end}": n for end, n in c["failures"].items()})
     w.writerow({k: "" if v is None else v for k, v in row.items()})
   return out.getvalue()
+
+
+def _actor(actor: str) -> str:
+  if actor == policy_lib.PRIVILEGED:
+    return ("the privileged actor (the base policy with the encoder's latent from the "
+            "simulator's state; not deployable)")
+  return "the deployable actor (adaptation module + base policy)"
 
 
 def _pct(x: float | None) -> str:
@@ -261,7 +272,7 @@ def render_markdown(doc: dict) -> str:
       f"# Evaluation: {doc['protocol']} protocol, {doc['backend']} backend", "",
       f"- checkpoint: `{doc['checkpoint']}` (stage `{doc['stage']}`, {doc['env_steps']} env "
       "steps)",
-      f"- {doc['trials']} trials per cell, seed {doc['seed']}",
+      f"- {doc['trials']} trials per cell, seed {doc['seed']}, {_actor(doc['actor'])}",
       f"- standard setup: torso {setup['torso_mass_kg']:g} kg, friction "
       f"{setup['friction']:g}, no randomization, no delay, flat floor; episodes of "
       f"{setup['episode_s']:g} s (recovery time counts from the control start, after "

@@ -301,6 +301,20 @@ fn a_never_trained_adaptation_module_is_refused_before_python_starts() {
     set_learner(&planar, Some(learner.clone()));
     let why = "stage planar ended before its adaptation phase";
     expect_refusal(&planar, why);
+    // `eval --actor privileged` acts without the adaptation module: no refusal, on to the next
+    // check (an output directory that exists; its default name says the actor).
+    let taken = planar.join("eval").join("keystate-native-privileged");
+    std::fs::create_dir_all(&taken).unwrap();
+    let out = hifar(dir.path())
+        .arg("eval")
+        .arg(&planar)
+        .args(["--protocol", "keystate", "--backend", "native", "--actor", "privileged"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2), "{}", stderr(&out));
+    assert!(stderr(&out).contains("keystate-native-privileged: the output directory exists"), "{}", stderr(&out));
+    assert!(!python_log.exists());
+    std::fs::remove_dir_all(planar.join("eval")).unwrap();
 
     // A run stands for the final checkpoint of its last completed stage: "planar" here, not
     // the later stage that was interrupted (whose stale final_checkpoint does not exist).

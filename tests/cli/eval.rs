@@ -39,6 +39,9 @@ fn bad_arguments_are_refused_before_python_starts() {
     let out = hifar(dir.path()).args(["eval", "nowhere", "--protocol", "full"]).output().unwrap();
     assert_eq!(out.status.code(), Some(2), "{}", stderr(&out));
     assert!(stderr(&out).contains("paper") && stderr(&out).contains("quick"), "{}", stderr(&out));
+    let out = hifar(dir.path()).args(["eval", "nowhere", "--actor", "teacher"]).output().unwrap();
+    assert_eq!(out.status.code(), Some(2), "{}", stderr(&out));
+    assert!(stderr(&out).contains("deployable") && stderr(&out).contains("privileged"), "{}", stderr(&out));
     assert!(!python_started(dir.path()));
 }
 

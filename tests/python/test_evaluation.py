@@ -400,7 +400,7 @@ def test_keystate_evaluation_reports_every_start_state(fresh_checkpoint, tmp_pat
                             "batch_size": 8, "out_dir": str(tmp_path / "k")})
   assert result["status"] == "completed"
   doc = json.loads((tmp_path / "k" / "eval.json").read_text())
-  assert doc["protocol"] == "keystate" and doc["trials"] == 2
+  assert doc["protocol"] == "keystate" and doc["trials"] == 2 and doc["actor"] == "deployable"
   cells = doc["cells"]
   assert [c["scenario"] for c in cells] == list(protocols.KEYSTATE_CELLS)
   for c in cells:
@@ -476,6 +476,49 @@ def test_an_untrained_adaptation_module_is_refused(fresh_checkpoint, tmp_path):
   # Without RMA there is no adaptation module to train: nothing to refuse.
   policy_lib.check_adaptation_trained({"network": {"rma": False}, "stage": "planar"}, untrained)
   policy_lib.check_adaptation_trained(meta, fresh_checkpoint)
+
+
+def test_the_privileged_actor_acts_without_the_adaptation_module(fresh_checkpoint, tmp_path):
+  """`actor = "privileged"` acts with the encoder's latent of the simulator's state (the actor the
+  monitor measures), so a checkpoint of a stage's PPO phase can be evaluated; eval.json and
+  eval.md say which actor acted."""
+  from jax_env.evaluation import policy as policy_lib
+
+  stage = _full_stage()
+  untrained = tmp_path / "untrained"
+  untrained.mkdir()
+  for f in (ckpt_lib.META_FILE, ckpt_lib.PARAMS_FILE):
+    (untrained / f).write_bytes((fresh_checkpoint / f).read_bytes())
+  meta = json.loads((untrained / ckpt_lib.META_FILE).read_text())
+  meta["learner"] = _learner_section(stage, 0)
+  (untrained / ckpt_lib.META_FILE).write_text(json.dumps(meta))
+
+  # One control step of each actor is env.step with that actor's mean action.
+  policy = policy_lib.load(untrained, policy_lib.PRIVILEGED)
+  env = FallRecoveryEnv(config_lib.StageConfig.from_dict(stage), backend="native")
+  state = env.reset(jax.random.split(jax.random.PRNGKey(3), 2))
+  history = policy.initial_history(2)
+  for actor, action in (
+      (policy_lib.PRIVILEGED, nets_lib.privileged_mean(policy.nets, policy.params,
+                                                       policy.normalizer, state.obs,
+                                                       state.privileged)),
+      (policy_lib.DEPLOYABLE, policy.act(state.obs, history))):
+    stepped, _ = policy_lib.episode_step(policy, env, actor)((state, history))
+    np.testing.assert_array_equal(stepped.obs, env.step(state, action).obs)
+
+  request = {"checkpoint": str(untrained), "stage": stage, "protocol": "keystate", "trials": 1,
+             "backend": "native", "batch_size": 8}
+  result = runner.evaluate({**request, "actor": "privileged", "out_dir": str(tmp_path / "p")})
+  assert result["status"] == "completed"
+  doc = json.loads((tmp_path / "p" / "eval.json").read_text())
+  assert doc["actor"] == "privileged" and len(doc["cells"]) == len(protocols.KEYSTATE_CELLS)
+  assert "the privileged actor (the base policy with the encoder's latent" in result["markdown"]
+  # The deployable actor (the default) is still refused on this checkpoint.
+  with pytest.raises(ckpt_lib.CheckpointError, match="was never trained"):
+    runner.evaluate({**request, "out_dir": str(tmp_path / "d")})
+  with pytest.raises(ValueError, match="unknown actor 'teacher'; valid: deployable, privileged"):
+    runner.evaluate({**request, "actor": "teacher", "out_dir": str(tmp_path / "t")})
+  assert not (tmp_path / "d").exists() and not (tmp_path / "t").exists()
 
 
 def test_evaluate_rejects_bad_requests(tmp_path):

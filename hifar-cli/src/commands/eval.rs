@@ -21,6 +21,7 @@ use crate::commands::facade::{default_backend, python_failure, EvaluateRequest, 
 use crate::commands::{setup, target};
 use crate::error::Interrupted;
 use crate::terminal::{self, Capture};
+use crate::names::names;
 use crate::{bad_input, paths};
 
 /// A validated `hifar eval` invocation, before the backend is known.
@@ -34,6 +35,8 @@ pub struct Plan {
     pub stage_name: String,
     pub protocol: &'static str,
     pub trials: Option<u32>,
+    /// None: the deployable actor.
+    pub actor: Option<String>,
     pub seed: u64,
     pub out: Option<PathBuf>,
     pub force: bool,
@@ -44,7 +47,9 @@ impl Plan {
         if args.trials == Some(0) {
             return Err(bad_input!("--trials 0: every protocol cell needs at least 1 trial"));
         }
-        let target = target::resolve(&args.target)?;
+        // A non-default actor does not act through the adaptation module: nothing to refuse.
+        let actor = args.actor.clone().filter(|a| a.as_str() != names().actors[0]);
+        let target = if actor.is_some() { target::resolve_any(&args.target)? } else { target::resolve(&args.target)? };
         Ok(Plan {
             checkpoint: target.checkpoint,
             run: target.run,
@@ -52,19 +57,22 @@ impl Plan {
             stage_name: target.meta.stage,
             protocol: args.protocol.as_str(),
             trials: args.trials,
+            actor,
             seed: args.seed,
             out: args.out.clone().map(paths::absolute),
             force: args.force,
         })
     }
 
-    /// `--out`, else `<run or checkpoint>/eval/<protocol>-<backend>`.
+    /// `--out`, else `<run or checkpoint>/eval/<protocol>-<backend>`, with `-<actor>` after a
+    /// non-default actor (so that it does not take the deployable actor's place).
     pub fn out_dir(&self, backend: &str) -> PathBuf {
         if let Some(out) = &self.out {
             return out.clone();
         }
         let base = self.run.as_ref().unwrap_or(&self.checkpoint);
-        base.join("eval").join(format!("{}-{backend}", self.protocol))
+        let actor = self.actor.as_ref().map(|a| format!("-{a}")).unwrap_or_default();
+        base.join("eval").join(format!("{}-{backend}{actor}", self.protocol))
     }
 
     /// Refuses an existing output directory unless `--force`.
@@ -95,10 +103,11 @@ pub fn run(args: &EvalArgs) -> Result<()> {
     let out = plan.out_dir(&backend);
     plan.check_out(&out)?;
     eprintln!(
-        "evaluating {} (stage {}) with the {} protocol on the {backend} backend -> {}",
+        "evaluating {} (stage {}) with the {} protocol on the {backend} backend{} -> {}",
         plan.checkpoint.display(),
         plan.stage_name,
         plan.protocol,
+        plan.actor.as_ref().map(|a| format!(", {a} actor")).unwrap_or_default(),
         out.display()
     );
 
@@ -108,6 +117,7 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         protocol: plan.protocol.to_owned(),
         trials: plan.trials,
         backend: backend.clone(),
+        actor: plan.actor.clone(),
         seed: plan.seed,
         out_dir: out.clone(),
         batch_size: None,

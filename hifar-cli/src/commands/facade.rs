@@ -85,6 +85,8 @@ pub struct EvaluateRequest {
     /// None: the protocol's default.
     pub trials: Option<u32>,
     pub backend: String,
+    /// None: the deployable actor.
+    pub actor: Option<String>,
     pub seed: u64,
     pub out_dir: PathBuf,
     /// None: the backend's default batch.

@@ -1,6 +1,7 @@
 //! The policy a command acts on: a checkpoint directory, or a run directory standing for the
 //! final checkpoint of its last completed stage. Either way the checkpoint must be deployable
-//! ([`checkpoint::check_deployable`]: no RMA adaptation module that never trained).
+//! ([`checkpoint::check_deployable`]: no RMA adaptation module that never trained), unless the
+//! command acts without the adaptation module (`hifar eval --actor privileged`).
 
 use std::path::{Path, PathBuf};
 
@@ -31,7 +32,15 @@ impl PolicyTarget {
     }
 }
 
+/// A deployable policy target.
 pub fn resolve(target: &Path) -> Result<PolicyTarget> {
+    let resolved = resolve_any(target)?;
+    checkpoint::check_deployable(&resolved.checkpoint, &resolved.meta)?;
+    Ok(resolved)
+}
+
+/// A policy target, deployable or not (a checkpoint of a stage's PPO phase included).
+pub fn resolve_any(target: &Path) -> Result<PolicyTarget> {
     let shown = target.display();
     if target.join(MANIFEST).is_file() {
         let run = paths::absolute(target.to_path_buf());
@@ -41,13 +50,11 @@ pub fn resolve(target: &Path) -> Result<PolicyTarget> {
         };
         let checkpoint = run.join(relative);
         let meta = checkpoint::read_meta(&checkpoint)?;
-        checkpoint::check_deployable(&checkpoint, &meta)?;
         let stage = Some(stage_table(&manifest, &run, &meta.stage)?);
         return Ok(PolicyTarget { checkpoint, meta, run: Some(run), stage });
     }
     if target.join("checkpoint.json").is_file() {
         let meta = checkpoint::read_meta(target)?;
-        checkpoint::check_deployable(target, &meta)?;
         return Ok(PolicyTarget { checkpoint: paths::absolute(target.to_path_buf()), meta, run: None, stage: None });
     }
     if !target.exists() {
