@@ -10,10 +10,9 @@ head down past `termination.upside_down` — counts as the failure the evaluatio
 with the mean action of the training-time policy (the privileged actor: the encoder's latent of
 the simulator's state; `hifar eval --actor privileged` acts the same way, the deployable actor
 through the adaptation module, which trains only at the end of a stage), and reports per
-scenario: the stand rate
-(stable standing held for success.hold_s, the paper's criterion), the mean recovery time of the
-successes, the mean highest Trunk height, and the share of episodes a termination rule ended
-(a get-up that a rule cuts short reads here, not as a failure to rise).
+scenario: the stand rate (stable standing held for success.hold_s, the paper's criterion), the
+mean recovery time of the successes, the mean highest Trunk height, and the share of episodes a
+termination rule ended (a get-up that a rule cuts short reads here, not as a failure to rise).
 
 The episodes' keys come from the stage seed alone (`MONITOR_SEED_SALT`), the same at every
 monitor call, so successive numbers differ only by the policy.
