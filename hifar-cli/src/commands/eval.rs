@@ -20,8 +20,8 @@ use crate::cli::EvalArgs;
 use crate::commands::facade::{default_backend, python_failure, EvaluateRequest, Request};
 use crate::commands::{setup, target};
 use crate::error::Interrupted;
-use crate::terminal::{self, Capture};
 use crate::names::names;
+use crate::terminal::{self, Capture};
 use crate::{bad_input, paths};
 
 /// A validated `hifar eval` invocation, before the backend is known.
