@@ -341,24 +341,15 @@ def agreement(model):
   xfrc[:10, 1, trunk, :3] = [60.0, 20.0, 0.0]  # a 0.2 s push on env 1
   xfrcs = jnp.asarray(xfrc)
   out = {}
-  # Compiled outside JAX's persistent cache: on a 2-core AMD EPYC machine (2026-12-06) writing
-  # one of these executables to the cache aborted the whole pytest process ("Fatal Python
-  # error: Aborted" in compilation_cache.put_executable_and_time) in two fresh-clone runs of the
-  # suite, though never with this file alone.
-  cached = jax.config.jax_enable_compilation_cache
-  jax.config.update("jax_enable_compilation_cache", False)
-  try:
-    for name, backend in (("native", NativeBackend(model)), ("mjx", MjxBackend(model))):
-      init = jax.jit(backend.init)(qpos, qvel, params, mocap)
-      step = jax.jit(backend.step)
-      views, state = [backend.view(init)], init
-      for i in range(AGREE_STEPS):
-        state = step(state, params, ctrls[i], xfrcs[i])
-        views.append(jax.device_get(backend.view(state)))
-      out[name] = jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]),
-                                         *views)
-  finally:
-    jax.config.update("jax_enable_compilation_cache", cached)
+  for name, backend in (("native", NativeBackend(model)), ("mjx", MjxBackend(model))):
+    init = jax.jit(backend.init)(qpos, qvel, params, mocap)
+    step = jax.jit(backend.step)
+    views, state = [backend.view(init)], init
+    for i in range(AGREE_STEPS):
+      state = step(state, params, ctrls[i], xfrcs[i])
+      views.append(jax.device_get(backend.view(state)))
+    out[name] = jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]),
+                                       *views)
   return out
 
 
