@@ -18,11 +18,11 @@ def _release_compiled_executables():
   """Frees a test file's compiled XLA executables once the file is done.
 
   XLA's CPU backend maps every compiled executable's code into memory regions of its own, and
-  the kernel caps the regions a process may map (vm.max_map_count, 65530 by default). One test
-  file leaves up to 9,500 of them; the whole suite in one pytest process ran past the cap, and
-  the next compile failed ("LLVM compilation error: Cannot allocate memory") and aborted
-  pytest while it wrote that executable to the persistent cache. A later file that needs an
-  executable again reads it from the persistent cache.
+  the kernel caps the regions a process may map (vm.max_map_count, 65530 by default). A test
+  file adds up to 19,500 of them (test_learner_train.py); the whole suite in one pytest process
+  ran past the cap, the next compile failed ("LLVM compilation error: Cannot allocate memory")
+  and pytest aborted while it wrote that executable to the persistent cache. A later file that
+  needs an executable again reads it from the persistent cache.
   """
   yield
   import jax  # not at the top: JAX reads the environment set above when it is imported
