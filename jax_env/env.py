@@ -92,10 +92,15 @@ class EnvState:
   control_active: jax.Array  # [B] float 0/1: actions take effect in the next step
   metrics: dict  # "reward/<term>", "standing": [B]
   episode_metrics: dict  # "success", "recovery_time", "return", "scenario", "max_height",
-  #                        "time_standing", "end" (index into EPISODE_ENDS): valid where done
+  #                        "time_standing", "end" (index into EPISODE_ENDS), "rule_met" (as
+  #                        `rule_met` below): valid where done
   step_count: jax.Array  # [B] int32 control steps since the episode start
   episode_limit: jax.Array  # [B] int32 control steps after which the episode times out
   low_steps: jax.Array  # [B] int32 consecutive controlled steps with the Trunk below low_height
+  # [B] int32 the first termination rule that held before the episode succeeded, as its index
+  # into EPISODE_ENDS (0: none). Where rules end episodes it is the rule that ended it; where they
+  # do not (evaluation), it says whether, and by which rule, the stage would have ended it.
+  rule_met: jax.Array
   max_height: jax.Array  # [B] highest Trunk height of the episode so far
   stand_steps: jax.Array  # [B] int32 controlled steps spent standing this episode
   penalty_scale: jax.Array  # [B] the penalty schedule's current scale (set by the learner)
@@ -121,10 +126,15 @@ class EnvState:
 class FallRecoveryEnv:
   """Booster T1 fall recovery for one curriculum stage."""
 
-  def __init__(self, stage: StageConfig | dict, backend: str = "mjx", mj_model=None):
+  def __init__(self, stage: StageConfig | dict, backend: str = "mjx", mj_model=None,
+               rules_end_episodes: bool = True):
+    """`rules_end_episodes`: the stage's termination rules end an episode (training, the
+    monitor). Off, an episode runs to its time limit (or a blow-up) as in the paper's
+    evaluation, and each rule that holds is only recorded (`EnvState.rule_met`)."""
     if not isinstance(stage, StageConfig):
       stage = StageConfig.from_dict(stage)
     self.stage = stage
+    self.rules_end_episodes = rules_end_episodes
     base_model = robot.load_model() if mj_model is None else mj_model
     self.mj_model = constrained_model(stage, base_model)
     # Resets never read derived physics quantities (see `_start`), so MJX may skip the forward
@@ -269,7 +279,8 @@ class FallRecoveryEnv:
         metrics=self._zero_metrics(batch), episode_metrics=self._zero_episode_metrics(batch),
         step_count=jnp.zeros((batch,), jnp.int32), control_start=control_start,
         episode_limit=jnp.full((batch,), self.episode_steps, jnp.int32),
-        low_steps=jnp.zeros((batch,), jnp.int32), max_height=qpos[:, 2],
+        low_steps=jnp.zeros((batch,), jnp.int32), rule_met=jnp.zeros((batch,), jnp.int32),
+        max_height=qpos[:, 2],
         stand_steps=jnp.zeros((batch,), jnp.int32), penalty_scale=jnp.ones((batch,)),
         assist_force=jnp.zeros((batch,)),
         scenario=scenario.astype(jnp.int32),
@@ -300,7 +311,7 @@ class FallRecoveryEnv:
   def _zero_episode_metrics(self, batch):
     z = jnp.zeros((batch,))
     return {"success": z, "recovery_time": jnp.full((batch,), jnp.nan, jnp.float32), "return": z,
-            "scenario": z, "max_height": z, "time_standing": z, "end": z}
+            "scenario": z, "max_height": z, "time_standing": z, "end": z, "rule_met": z}
 
   def stagger(self, state: EnvState, key: jax.Array) -> EnvState:
     """The same episodes with their first time limits drawn uniformly in (control start,
@@ -378,11 +389,15 @@ class FallRecoveryEnv:
     step_count = state.step_count + 1
     time_up = step_count >= state.episode_limit
     low_steps, rules = self._terminations(state, x, active)
-    terminated = jnp.any(rules, axis=-1)
+    # A rule that holds once the episode has succeeded does not undo the success.
+    met = jnp.any(rules, axis=-1) & ~success.success & finite
+    first_rule = 1 + jnp.argmax(rules, axis=-1)  # its index into EPISODE_ENDS
+    rule_met = jnp.where(met & (state.rule_met == 0), first_rule, state.rule_met)
+    terminated = jnp.any(rules, axis=-1) & self.rules_end_episodes
     done = time_up | ~finite | terminated
     # EPISODE_ENDS is the time limit, then the rules in `rules`' column order, then a blow-up.
     end = jnp.where(~finite, EPISODE_ENDS.index("blow_up"),
-                    jnp.where(terminated, 1 + jnp.argmax(rules, axis=-1),
+                    jnp.where(terminated, first_rule,
                               EPISODE_ENDS.index("time_limit")))
     episode_return = state.episode_return + reward
     # A blown-up step's height is the numerics', not the robot's: the episode ends on it and
@@ -397,6 +412,7 @@ class FallRecoveryEnv:
         "max_height": max_height,
         "time_standing": stand_steps.astype(jnp.float32) * self.ctrl_dt,
         "end": end.astype(jnp.float32),
+        "rule_met": rule_met.astype(jnp.float32),
     }
     obs = self._obs(view, state.draw, applied)
     priv = self._privileged(view, state.draw, push, pushing, scheduled_force)
@@ -407,7 +423,7 @@ class FallRecoveryEnv:
         truncation=(time_up & finite & ~terminated).astype(jnp.float32),
         control_active=(step_count >= state.control_start).astype(jnp.float32),
         metrics=metrics, episode_metrics=episode_metrics, step_count=step_count,
-        low_steps=low_steps, max_height=max_height, stand_steps=stand_steps,
+        low_steps=low_steps, rule_met=rule_met, max_height=max_height, stand_steps=stand_steps,
         targets=history[:, :self.target_history], last_action=applied,
         prev_action=state.last_action, prev_qvel=view.qvel, push=push, push_active=pushing,
         success=success, episode_return=episode_return, rng=rng,

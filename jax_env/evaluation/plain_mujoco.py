@@ -33,8 +33,8 @@ One control step (every ctrl_dt):
 Physics: the scene as loaded (the real robot's torque limits, joint ranges and velocity limits,
 whatever a stage's `constraints` relaxed in training; floor friction 1.0), no randomization, no
 delay, no pushes; the timestep is the metadata's (the curriculum's) if it has one, else the
-scene's `opt.timestep`. Unlike the environment there are no early terminations: every trial
-runs `duration_s` or until it succeeds.
+scene's `opt.timestep`. As in `hifar eval` (and the paper) no termination rule ends a trial:
+every trial runs `duration_s` or until it succeeds.
 
 Start states: the model's keyframes of the given names (`mj_resetDataKeyframe`). Trial 0 starts
 at the keyframe exactly; later trials add N(0, 0.05²) rad to every joint (seeded, clipped to the

@@ -71,7 +71,7 @@ def rollout(request: dict) -> dict:
   policy = policy_lib.load(req.checkpoint)
   stage = conditions.evaluation_stage(policy_lib.stage_of(policy, req.stage))
   stage = _with_duration(stage, req.duration_s)
-  env = FallRecoveryEnv(stage, backend=req.backend)
+  env = FallRecoveryEnv(stage, backend=req.backend, rules_end_episodes=False)  # as `evaluate`
   policy_lib.check_features(policy, env)
 
   condition = conditions.Condition(

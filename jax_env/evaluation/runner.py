@@ -11,9 +11,13 @@ the batch size or on the other cells.
 
 Success, recovery time and how the episode ended are the env's own `episode_metrics` of each
 env's first episode: the rollout runs exactly `episode_steps` control steps, so every first
-episode ends at the last step, or earlier by one of the stage's termination rules or a numerical
-blow-up. Each cell counts its failed trials by how they ended, so that a failure the stage's
-rules end early (an upside-down dive) is told apart from one that never got up.
+episode ends at the last step, or earlier by a numerical blow-up. As in the paper's evaluation
+(Webots, no early end), the stage's termination rules do not end a trial: they are training
+devices (no value bootstrap for a dive or a roll onto a side), and one that holds for a moment
+of a roll that then stands up would count a recovery as a failure. The env records instead the
+first rule that held before the trial succeeded (`rule_met`), and each cell reports beside its
+successes how many remain within the stage's rules (those no rule would have ended) and how
+many trials each rule would have ended: the stricter reading, as `hifar eval` measured before.
 """
 
 from __future__ import annotations
@@ -36,15 +40,18 @@ from jax_env.evaluation import protocols as proto_lib
 from jax_env.evaluation import stats
 from jax_env.files import write_atomic
 from jax_env.learner import train as train_lib
-from jax_env.stage_config import EPISODE_ENDS
+from jax_env.stage_config import EPISODE_ENDS, TERMINATION_RULES
 
 FORMAT_VERSION = 1
 FILES = ("eval.json", "eval.csv", "eval.md")
 DEFAULT_BATCH = {"mjx": 1024, "native": 128}
+# How a trial can end when the stage's rules do not end it.
+TRIAL_ENDS = tuple(end for end in EPISODE_ENDS if end not in TERMINATION_RULES)
 CSV_FIELDS = ("experiment", "scenario", "setting", "value", "trials", "successes",
               "success_rate", "ci_low", "ci_high", "recovery_time_mean", "recovery_time_std",
               "paper_success_rate", "paper_recovery_time_mean", "paper_recovery_time_std"
-              ) + tuple(f"failed_{end}" for end in EPISODE_ENDS)
+              ) + tuple(f"failed_{end}" for end in TRIAL_ENDS) + (
+              "within_rules_successes",) + tuple(f"rule_met_{r}" for r in TERMINATION_RULES)
 EXPERIMENT_TITLES = {
     "standard": "Standard supine and prone recovery",
     "planar_push": "Planar push (forward from prone, backward from supine; 0.8 s after the "
@@ -91,9 +98,9 @@ def trial_keys(seed: int, cell_index: int, trials: int) -> np.ndarray:
 
 def make_rollout(env, policy: policy_lib.Policy,
                  actor: str = policy_lib.DEPLOYABLE) -> Callable:
-  """(keys [B], ConditionArrays [B]) -> (success [B], recovery_time [B], end [B] (index into
-  EPISODE_ENDS), ended [B]) of the first episode of each env, over exactly env.episode_steps
-  control steps (pure; jit it)."""
+  """(keys [B], ConditionArrays [B]) -> (success [B], recovery_time [B], end [B] and rule_met
+  [B] (indices into EPISODE_ENDS), ended [B]) of the first episode of each env, over exactly
+  env.episode_steps control steps (pure; jit it)."""
   act_step = policy_lib.episode_step(policy, env, actor)
 
   def rollout(keys, arrays):
@@ -109,10 +116,11 @@ def make_rollout(env, policy: policy_lib.Policy,
       return (state, history, ended | first, record), None
 
     record = {"success": jnp.zeros((batch,)), "recovery_time": jnp.full((batch,), jnp.nan),
-              "end": jnp.zeros((batch,))}
+              "end": jnp.zeros((batch,)), "rule_met": jnp.zeros((batch,))}
     init = (state, history, jnp.zeros((batch,), bool), record)
     (_, _, ended, record), _ = jax.lax.scan(body, init, None, length=env.episode_steps)
-    return record["success"], record["recovery_time"], record["end"], ended
+    return (record["success"], record["recovery_time"], record["end"], record["rule_met"],
+            ended)
 
   return rollout
 
@@ -126,7 +134,8 @@ def _compiled(policy: policy_lib.Policy, stage: dict, backend: str, batch: int, 
   key = (str(checkpoint.resolve()), stamp, json.dumps(stage, sort_keys=True), backend, batch,
          actor)
   if key not in _ROLLOUTS:
-    env = FallRecoveryEnv(cond_lib.evaluation_stage(stage), backend=backend)
+    env = FallRecoveryEnv(cond_lib.evaluation_stage(stage), backend=backend,
+                          rules_end_episodes=False)
     policy_lib.check_features(policy, env)
     _ROLLOUTS.clear()  # one policy at a time: compiled rollouts hold their constants
     _ROLLOUTS[key] = (policy, env, jax.jit(make_rollout(env, policy, actor)))
@@ -152,15 +161,17 @@ def evaluate(request: dict, callback: Callable[[dict], str] | None = None) -> di
   success = np.zeros(total, np.float32)
   recovery = np.full(total, np.nan, np.float32)
   end = np.zeros(total, np.int32)
+  rule_met = np.zeros(total, np.int32)
 
   for lo in range(0, total, batch):
     idx = np.minimum(np.arange(lo, lo + batch), total - 1)  # pad with the last trial
     arrays = jax.tree_util.tree_map(lambda x: jnp.asarray(x[idx]), rows)
-    s, t, e, ended = jax.device_get(rollout(jnp.asarray(keys[idx]), arrays))
+    s, t, e, m, ended = jax.device_get(rollout(jnp.asarray(keys[idx]), arrays))
     if not np.all(ended):
       raise RuntimeError("evaluate: an episode did not end after episode_steps control steps")
     n = min(batch, total - lo)
-    success[lo:lo + n], recovery[lo:lo + n], end[lo:lo + n] = s[:n], t[:n], e[:n]
+    success[lo:lo + n], recovery[lo:lo + n] = s[:n], t[:n]
+    end[lo:lo + n], rule_met[lo:lo + n] = e[:n], m[:n]
     done = lo + n
     if callback is not None:
       answer = callback({"cells_done": done // trials, "cells_total": len(cells),
@@ -172,8 +183,8 @@ def evaluate(request: dict, callback: Callable[[dict], str] | None = None) -> di
         raise ValueError(f"evaluate: callback answered {answer!r}; valid: continue, interrupt")
 
   per_cell = lambda a, c: a[c * trials:(c + 1) * trials]
-  results = [_cell_result(cell, per_cell(success, c), per_cell(recovery, c), per_cell(end, c))
-             for c, cell in enumerate(cells)]
+  results = [_cell_result(cell, per_cell(success, c), per_cell(recovery, c), per_cell(end, c),
+                          per_cell(rule_met, c)) for c, cell in enumerate(cells)]
   doc = _document(r, policy, env, results)
   markdown = render_markdown(doc)
   files = _write(r["out_dir"], {
@@ -185,9 +196,10 @@ def evaluate(request: dict, callback: Callable[[dict], str] | None = None) -> di
 
 
 def _cell_result(cell: proto_lib.Cell, success: np.ndarray, recovery: np.ndarray,
-                 end: np.ndarray) -> dict:
+                 end: np.ndarray, rule_met: np.ndarray) -> dict:
   ok = success > 0.5
   n, k = int(success.shape[0]), int(ok.sum())
+  within = int(np.sum(ok & (rule_met == 0)))
   low, high = stats.wilson_interval(k, n)
   mean, std = stats.mean_std([float(x) for x in recovery[ok]])
   return {
@@ -197,7 +209,11 @@ def _cell_result(cell: proto_lib.Cell, success: np.ndarray, recovery: np.ndarray
       "paper_success_rate": cell.paper_success_rate,
       "paper_recovery_time": (None if cell.paper_recovery_time is None
                               else list(cell.paper_recovery_time)),
-      "failures": {name: int(np.sum(~ok & (end == i))) for i, name in enumerate(EPISODE_ENDS)},
+      "failures": {name: int(np.sum(~ok & (end == EPISODE_ENDS.index(name))))
+                   for name in TRIAL_ENDS},
+      "within_rules": {"successes": within, "success_rate": within / n,
+                       "rule_met": {name: int(np.sum(rule_met == EPISODE_ENDS.index(name)))
+                                    for name in TERMINATION_RULES}},
       "condition": cell.condition.to_dict(),
   }
 
@@ -223,6 +239,8 @@ def render_csv(results: list[dict]) -> str:
     row.update(ci_low=c["ci95"][0], ci_high=c["ci95"][1], paper_recovery_time_mean=paper_t[0],
                paper_recovery_time_std=paper_t[1])
     row.update({f"failed_{end}": n for end, n in c["failures"].items()})
+    row.update(within_rules_successes=c["within_rules"]["successes"])
+    row.update({f"rule_met_{r}": n for r, n in c["within_rules"]["rule_met"].items()})
     w.writerow({k: "" if v is None else v for k, v in row.items()})
   return out.getvalue()
 
@@ -249,14 +267,23 @@ def _time(mean, std) -> str:
 
 
 def _failures(counts: dict[str, int]) -> str:
-  """Failed trials by how their episode ended: "2 at the time limit, 6 upside down face down"."""
+  """Trials counted by how their episode ended or which rule held: "2 at the time limit, 6
+  upside down face down"."""
   words = {"time_limit": "at the time limit", "blow_up": "numerical blow-up"}
   parts = [f"{n} {words.get(end, end.replace('_', ' '))}" for end, n in counts.items() if n]
   return ", ".join(parts) or "—"
 
 
-def _failures_over(cells: list[dict]) -> dict[str, int]:
-  return {end: sum(c["failures"][end] for c in cells) for end in EPISODE_ENDS}
+def _within_rules(c: dict) -> str:
+  """A cell under the stage's termination rules: "5/16 (11 upside down face down)"."""
+  w = c["within_rules"]
+  met = _failures(w["rule_met"])
+  return f"{w['successes']}/{c['trials']}" + ("" if met == "—" else f" ({met})")
+
+
+def _sum_over(cells: list[dict], counts) -> dict[str, int]:
+  names = counts(cells[0])
+  return {k: sum(counts(c)[k] for c in cells) for k in names}
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
@@ -304,14 +331,17 @@ def render_markdown(doc: dict) -> str:
                f"{100 * c['ci95'][0]:.0f}–{100 * c['ci95'][1]:.0f}%",
                f"{c['successes']}/{c['trials']}",
                _time(c["recovery_time_mean"], c["recovery_time_std"]),
-               _failures(c["failures"])] for c in cells]
+               _failures(c["failures"]), _within_rules(c)] for c in cells]
       lines += _table(["Start state", "Success rate", "95 % Wilson interval", "Successes",
-                       "Recovery time (s)", "Failed trials ended"], rows)
+                       "Recovery time (s)", "Failed trials ended",
+                       "Successes within the stage's rules"], rows)
       lines += ["", "Every start state under the standard setup (no push, nominal mass and "
                 "friction, no randomization); `stand` starts standing and succeeds by staying "
-                "up. A failed trial ends at the time limit or earlier, by a termination rule "
-                "of the policy's stage (`[stage.termination]`). The paper reports no such "
-                "table."]
+                "up. As in the paper, a trial ends only at the time limit (or a numerical "
+                "blow-up). The last column is the stricter reading: the successes left if the "
+                "termination rules of the policy's stage (`[stage.termination]`) ended trials "
+                "as in training, and how many trials each rule would have ended before they "
+                "stood. The paper reports no such table."]
     else:
       settings = list(dict.fromkeys(c["setting"] for c in cells))
       row_of = lambda c: proto_lib.table_row(exp, c["scenario"])
@@ -321,9 +351,15 @@ def render_markdown(doc: dict) -> str:
       rows = [[name.capitalize()] + [_entry(index[(name, s)]) if (name, s) in index else ""
                                      for s in settings] for name in row_names]
       lines += _table(header, rows)
-    failures = _failures_over(cells)
+    failures = _sum_over(cells, lambda c: c["failures"])
     if exp != "keystate" and any(failures.values()):
       lines += ["", f"Failed trials ended: {_failures(failures)}."]
+    met = _sum_over(cells, lambda c: c["within_rules"]["rule_met"])
+    if exp != "keystate" and any(met.values()):
+      within = sum(c["within_rules"]["successes"] for c in cells)
+      lines += ["", f"Within the stage's termination rules: {within} of "
+                f"{sum(c['successes'] for c in cells)} successes remain; trials the rules would "
+                f"have ended before they stood: {_failures(met)}."]
     lines.append("")
   return "\n".join(lines)
 

@@ -25,7 +25,7 @@ from jax_env.learner import ppo as ppo_lib
 from jax_env.learner import train as train_lib
 from jax_env.names import SCENARIOS, TERRAINS
 from jax_env.paths import REPO_ROOT
-from jax_env.stage_config import EPISODE_ENDS
+from jax_env.stage_config import EPISODE_ENDS, TERMINATION_RULES
 
 
 def _full_stage() -> dict:
@@ -410,13 +410,16 @@ def test_keystate_evaluation_reports_every_start_state(fresh_checkpoint, tmp_pat
     assert c["paper_success_rate"] is None and c["paper_recovery_time"] is None
     assert c["condition"] == cond_lib.Condition(scenario=c["scenario"]).to_dict()
     # Every failed trial counted once by how it ended; this stage has no termination rules.
-    assert set(c["failures"]) == set(EPISODE_ENDS)
+    assert set(c["failures"]) == set(runner.TRIAL_ENDS) == {"time_limit", "blow_up"}
     assert c["failures"]["time_limit"] == c["trials"] - c["successes"]
     assert sum(c["failures"].values()) == c["trials"] - c["successes"]
+    assert c["within_rules"]["successes"] == c["successes"]
+    assert set(c["within_rules"]["rule_met"]) == set(TERMINATION_RULES)
+    assert not any(c["within_rules"]["rule_met"].values())
   md = result["markdown"]
   assert "## Start states of the key-state curriculum (nominal conditions)" in md
   assert ("| Start state | Success rate | 95 % Wilson interval | Successes | Recovery time (s) | "
-          "Failed trials ended |") in md
+          "Failed trials ended | Successes within the stage's rules |") in md
   assert "| `stand` | " in md and "| `ksi_supine_3` | " in md and "| `prone` | " in md
   assert "the paper's (Webots" not in md  # no paper numbers in this protocol
   rows = (tmp_path / "k" / "eval.csv").read_text().splitlines()
@@ -427,6 +430,27 @@ def test_keystate_evaluation_reports_every_start_state(fresh_checkpoint, tmp_pat
   lying = cells[protocols.KEYSTATE_CELLS.index("supine")]
   assert lying["successes"] == 0  # an untrained policy does not get up from lying
   assert "| `supine` | 0% | " in md and "| 2 at the time limit |" in md
+
+
+def test_a_cell_reports_its_successes_within_the_stage_rules():
+  # Four trials run to the time limit (rules never end an evaluation trial): two stood up, one
+  # of them after the face-down rule held for a moment (a roll out of the kneel); one never got
+  # up after lying low too long; one got up with no rule met.
+  i = EPISODE_ENDS.index
+  cell = protocols.cells("keystate")[0]
+  c = runner._cell_result(
+      cell, success=np.array([1.0, 1.0, 0.0, 0.0]), recovery=np.array([1.5, 2.0, np.nan, np.nan]),
+      end=np.full(4, i("time_limit")),
+      rule_met=np.array([0, i("upside_down_face_down"), i("low_height"), 0]))
+  assert c["successes"] == 2 and c["failures"] == {"time_limit": 2, "blow_up": 0}
+  assert c["within_rules"] == {
+      "successes": 1, "success_rate": 0.25,
+      "rule_met": {"low_height": 1, "upside_down": 0, "upside_down_face_down": 1,
+                   "side_roll": 0}}
+  assert runner._within_rules(c) == "1/4 (1 low height, 1 upside down face down)"
+  row = runner.render_csv([c]).splitlines()[1].split(",")
+  assert row[runner.CSV_FIELDS.index("within_rules_successes")] == "1"
+  assert row[runner.CSV_FIELDS.index("rule_met_upside_down_face_down")] == "1"
 
 
 def test_failed_trials_are_described_by_how_they_ended():
