@@ -255,7 +255,7 @@ def test_face_down_limit_spares_the_roll_over_a_shoulder():
 def test_rules_that_do_not_end_episodes_are_recorded():
   # The evaluation's environment (`rules_end_episodes=False`, as in the paper's evaluation): the
   # head-first dive runs on to its time limit and keeps the rule that held first (the training
-  # environment ends it there: the test above).
+  # environment ends it there: test_face_down_limit_ends_the_head_first_dive_not_the_rock_back).
   term = {"upside_down": 0.9, "upside_down_face_down": 0.8}
   y = jnp.asarray([0.0, 1.0, 0.0], jnp.float32)
   dive_quat = axis_angle_quat(y, math.pi * 5 / 6)
