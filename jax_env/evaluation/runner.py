@@ -42,7 +42,9 @@ from jax_env.files import write_atomic
 from jax_env.learner import train as train_lib
 from jax_env.stage_config import EPISODE_ENDS, TERMINATION_RULES
 
-FORMAT_VERSION = 1
+# 2 (2026-12-07): the stage's termination rules no longer end a trial; `failures` counts only
+# `TRIAL_ENDS`, and `within_rules` keeps the stricter reading that version 1 reported.
+FORMAT_VERSION = 2
 FILES = ("eval.json", "eval.csv", "eval.md")
 DEFAULT_BATCH = {"mjx": 1024, "native": 128}
 # How a trial can end when the stage's rules do not end it.

@@ -358,7 +358,7 @@ def test_quick_evaluation_is_reproducible(fresh_checkpoint, tmp_path):
   assert first["markdown"] == second["markdown"]
 
   doc = json.loads(a)
-  assert doc["format_version"] == 1 and doc["protocol"] == "quick"
+  assert doc["format_version"] == 2 and doc["protocol"] == "quick"
   assert doc["backend"] == "native" and doc["seed"] == 1 and doc["trials"] == 2
   assert doc["stage"] == "full" and doc["env_steps"] == 0
   assert doc["conditions"]["friction"] == 1.0
