@@ -389,11 +389,12 @@ class FallRecoveryEnv:
     step_count = state.step_count + 1
     time_up = step_count >= state.episode_limit
     low_steps, rules = self._terminations(state, x, active)
-    # A rule that holds once the episode has succeeded does not undo the success.
-    met = jnp.any(rules, axis=-1) & ~success.success & finite
+    held = jnp.any(rules, axis=-1)
     first_rule = 1 + jnp.argmax(rules, axis=-1)  # its index into EPISODE_ENDS
-    rule_met = jnp.where(met & (state.rule_met == 0), first_rule, state.rule_met)
-    terminated = jnp.any(rules, axis=-1) & self.rules_end_episodes
+    # A rule that holds once the episode has succeeded does not undo the success.
+    met = held & ~success.success & finite & (state.rule_met == 0)
+    rule_met = jnp.where(met, first_rule, state.rule_met)
+    terminated = held & self.rules_end_episodes
     done = time_up | ~finite | terminated
     # EPISODE_ENDS is the time limit, then the rules in `rules`' column order, then a blow-up.
     end = jnp.where(~finite, EPISODE_ENDS.index("blow_up"),
