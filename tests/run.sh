@@ -20,7 +20,6 @@ cargo build --release --locked
 # core (at most 4, each holds its own JAX). On two cores beside a training run: 12 min against
 # 40 min with one worker. --dist loadfile keeps a file's tests in one worker, so its module
 # fixtures are built once.
-workers=$(nproc)
-if (( workers > 4 )); then workers=4; fi
-"$HIFAR_VENV/bin/python" -m pytest -q -n "$workers" --dist loadfile --durations=10 tests/python
+"$HIFAR_VENV/bin/python" -m pytest -q -n auto --maxprocesses 4 --dist loadfile --durations=10 \
+  tests/python
 cargo test --release --locked
