@@ -17,8 +17,8 @@ cargo build --release --locked
 "$root/target/release/hifar" setup
 
 # Most of the Python suite's time is XLA compiling, one core per compile: one pytest worker per
-# core (at most 4, each holds its own JAX). On two cores beside a training run: 12 min against
-# 40 min with one worker. --dist loadfile keeps a file's tests in one worker, so its module
+# core (at most 4, each holds its own JAX). On two idle cores: 7 min against 23 min with one
+# worker. --dist loadfile keeps a file's tests in one worker, so its module
 # fixtures are built once.
 "$HIFAR_VENV/bin/python" -m pytest -q -n auto --maxprocesses 4 --dist loadfile --durations=10 \
   tests/python
