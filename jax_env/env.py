@@ -246,20 +246,22 @@ class FallRecoveryEnv:
       draw = jax.vmap(lambda k, t: self.randomizer.draw(k, 1, t[None]))(keys, terrain)
     return jax.tree_util.tree_map(lambda x: x[:, 0], draw)
 
-  def _reset(self, keys, scenario=None, terrain=None) -> EnvState:
+  def _reset(self, keys, scenario=None, terrain=None, only=None) -> EnvState:
     keys, k_draw, k_scn = self._split(keys, 3)
     draw = self._draw(k_draw, terrain)
     init = self.sampler.sample(k_scn, draw, scenario)
     return self._start(keys, draw, init.qpos, init.qvel, init.mocap_pos, init.scenario,
-                       init.settles, init.geom_lowest, init.teacher_row)
+                       init.settles, init.geom_lowest, init.teacher_row, only=only)
 
   def _start(self, keys, draw, qpos, qvel, mocap, scenario, settles, geom_lowest=None,
-             teacher_row=None) -> EnvState:
+             teacher_row=None, only=None) -> EnvState:
+    """Fresh episodes; `only` [B] bool marks the rows the caller keeps (the backend may skip
+    the physics of the others, whose `physics` is then unspecified)."""
     batch = qpos.shape[0]
     keys, k_push = self._split(keys, 2)
     qpos = qpos.astype(jnp.float32)
     qvel = qvel.astype(jnp.float32)
-    physics = self.backend.init(qpos, qvel, draw.params, mocap)
+    physics = self.backend.init(qpos, qvel, draw.params, mocap, only=only)
     control_start = jnp.where(settles, self.settle_steps, 0).astype(jnp.int32)
     hold = qpos[:, 7:]
     push = self.pusher.reset(k_push, control_start)
@@ -432,7 +434,7 @@ class FallRecoveryEnv:
 
     # 6. Auto-reset with fresh draws, only computed when some episode ended.
     def auto_reset(nxt):
-      fresh = self._reset(k_reset)
+      fresh = self._reset(k_reset, only=done)
       keep = dict(reward=nxt.reward, done=nxt.done, truncation=nxt.truncation,
                   metrics=nxt.metrics, episode_metrics=nxt.episode_metrics,
                   penalty_scale=nxt.penalty_scale, assist_force=nxt.assist_force)

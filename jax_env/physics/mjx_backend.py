@@ -46,7 +46,8 @@ class MjxBackend:
         model_fields(params, self.model.actuator_gainprm, self.model.actuator_biasprm))
 
   def init(self, qpos: jax.Array, qvel: jax.Array, params: ModelParams,
-           mocap_pos: jax.Array) -> mjx.Data:
+           mocap_pos: jax.Array, only: jax.Array | None = None) -> mjx.Data:
+    del only  # every row is computed: a vectorized forward costs the same for a subset
     batch = qpos.shape[0]
     data = mjx.make_data(self.model)
     data = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), data)

@@ -98,8 +98,11 @@ class Backend(Protocol):
   name: str
 
   def init(self, qpos: jax.Array, qvel: jax.Array, params: ModelParams,
-           mocap_pos: jax.Array) -> Any:
-    """Physics state [B] at the given configuration, derived quantities computed."""
+           mocap_pos: jax.Array, only: jax.Array | None = None) -> Any:
+    """Physics state [B] at the given configuration, derived quantities computed.
+
+    `only` [B] bool: the rows the caller keeps (an auto-reset keeps the episodes that ended);
+    a backend may leave the other rows' state unspecified and skip their work."""
 
   def step(self, state: Any, params: ModelParams, ctrl: jax.Array,
            xfrc_applied: jax.Array) -> Any:

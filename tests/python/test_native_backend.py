@@ -201,6 +201,29 @@ def test_step_is_a_pure_function_and_resumes_bit_exactly(model, exact_case):
   assert integration_rows(a.integration).dtype == np.float64
 
 
+def test_init_of_some_rows_equals_init_of_all_on_those_rows(model, exact_case):
+  """An auto-reset keeps only the episodes that ended: `init(..., only=mask)` computes just
+  those rows, bit for bit as a full init would, and their first step follows suit."""
+  c = exact_case
+  backend = NativeBackend(model)
+  init = jax.jit(backend.init)
+  step = jax.jit(backend.step)
+  full = init(c["qpos"], c["qvel"], c["params"], c["mocap"])
+  only = jnp.asarray([False, True, False, True])
+  calls = backend.stats["init_calls"]
+  some = init(c["qpos"], c["qvel"], c["params"], c["mocap"], only=only)
+  assert backend.stats["init_calls"] == calls + 1
+  rows = np.flatnonzero(np.asarray(only))
+  for a, b in zip(jax.tree_util.tree_leaves(full), jax.tree_util.tree_leaves(some)):
+    np.testing.assert_array_equal(np.asarray(a)[rows], np.asarray(b)[rows])
+  after_full = step(full, c["params"], c["ctrls"][0], c["xfrcs"][0])
+  after_some = step(some, c["params"], c["ctrls"][0], c["xfrcs"][0])
+  for a, b in zip(jax.tree_util.tree_leaves(after_full), jax.tree_util.tree_leaves(after_some)):
+    np.testing.assert_array_equal(np.asarray(a)[rows], np.asarray(b)[rows])
+  with pytest.raises(ValueError, match=r"only has shape \(3,\), expected \(4,\)"):
+    backend.init(c["qpos"], c["qvel"], c["params"], c["mocap"], only=only[:3])
+
+
 def test_bad_shapes_are_rejected_with_the_expected_shape(model, exact_case):
   c = exact_case
   backend = NativeBackend(model)
