@@ -299,6 +299,33 @@ def test_staggered_clocks_end_first_episodes_at_different_steps(upright_env):
   assert np.all(np.asarray(state.episode_limit) == env.episode_steps)
 
 
+def test_auto_reset_of_the_rows_that_ended_equals_a_reset_of_every_row():
+  """On the native backend auto-resets compute fresh episodes for the few rows that ended
+  (env.reset_rows), gathered; the batch after the step is, bit for bit, what a reset of every
+  row (kept where done) gives, with one, reset_rows and more rows ending at once."""
+  env = FallRecoveryEnv(default_stage_dict("planar"), backend="native")  # randomized draws
+  few = env.reset_rows
+  n = few + 4
+  state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(4), n))
+  a = 0.3 * jax.random.normal(jax.random.PRNGKey(5), (n, env.action_size))
+  gathered = jax.jit(lambda s, a: env.step(s, a))
+  for _ in range(3):
+    state = gathered(state, a)
+  every_row = jax.jit(lambda s, a: env.step(s, a))  # traced below, with every row
+  for ending in ([5], list(range(1, 1 + few)), list(range(n - 3))):
+    limit = state.episode_limit.at[jnp.asarray(ending)].set(state.step_count[0] + 1)
+    s = state.replace(episode_limit=limit)
+    x = gathered(s, a)
+    env.reset_rows = 0  # read when the step is traced
+    y = every_row(s, a)
+    env.reset_rows = few
+    assert np.flatnonzero(np.asarray(x.done)).tolist() == ending
+    assert np.all(np.asarray(x.step_count)[ending] == 0)  # fresh episodes
+    assert few in env.backend._batches  # the gathered rows' own host batch: the path ran
+    for p, q in zip(jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y)):
+      np.testing.assert_array_equal(np.asarray(p), np.asarray(q))
+
+
 def test_assist_force_lifts_the_trunk_and_survives_resets():
   env = FallRecoveryEnv(_stage(), backend="native")
   y = jnp.asarray([0.0, 1.0, 0.0], jnp.float32)
