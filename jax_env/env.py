@@ -64,13 +64,12 @@ def _forced_index(value, names, what, shape):
 
 # A state whose joint or base speed exceeds this (rad/s or m/s) has blown up numerically.
 BLOWUP_SPEED = 1e3
-# On the native backend (CPUs), auto-resets compute fresh episodes for at most this many rows
-# of the batch at once (the episodes that ended, gathered), and for the whole batch only when
-# more ended in one step. Every row's reset is its own (per-row keys, vmapped), so the rows are
-# the same either way; of 128 episodes of 300 steps about one ends per step, and a reset of all
-# 128 rows (under vmap every start scenario's pose is computed for every row) cost several
-# percent of a training step on a CPU. MJX (accelerators) resets every row: a vectorized reset
-# costs little next to the MJX step there, and a second reset branch would lengthen its compile.
+# On the native backend (CPUs), auto-resets compute fresh episodes for the rows that ended,
+# this many at a time (gathered; a loop takes more), not for the whole batch. Every row's reset
+# is its own (per-row keys, vmapped), so the rows are the same either way; of 128 episodes of
+# 300 steps about one ends per step, and a reset of all 128 rows (under vmap every start
+# scenario's pose is computed for every row) cost several percent of a training step on a CPU.
+# MJX (accelerators) resets every row: a vectorized reset costs little next to the MJX step.
 RESET_ROWS = 8
 
 
@@ -441,12 +440,13 @@ class FallRecoveryEnv:
         success=success, episode_return=episode_return, rng=rng,
         teacher_row=self._next_teacher_row(state))
 
-    # 6. Auto-reset with fresh draws, only computed when some episode ended: for the rows
-    #    that ended, gathered, when they are few (`reset_rows`), else for the whole batch.
-    keep = lambda merged: merged.replace(
-        reward=nxt.reward, done=nxt.done, truncation=nxt.truncation, metrics=nxt.metrics,
-        episode_metrics=nxt.episode_metrics, penalty_scale=nxt.penalty_scale,
-        assist_force=nxt.assist_force)
+    # 6. Auto-reset with fresh draws, only computed when some episode ended: on the native
+    #    backend for the rows that ended, `reset_rows` at a time (gathered), else every row.
+    def keep(merged):
+      return merged.replace(
+          reward=nxt.reward, done=nxt.done, truncation=nxt.truncation, metrics=nxt.metrics,
+          episode_metrics=nxt.episode_metrics, penalty_scale=nxt.penalty_scale,
+          assist_force=nxt.assist_force)
 
     def reset_all(nxt):
       fresh = self._reset(k_reset, only=done)
@@ -454,18 +454,21 @@ class FallRecoveryEnv:
           lambda new, old: jnp.where(done.reshape((-1,) + (1,) * (old.ndim - 1)), new, old),
           fresh, nxt))
 
-    def reset_few(nxt):
-      rows = jnp.flatnonzero(done, size=self.reset_rows, fill_value=batch)  # batch: no row
-      valid = rows < batch
-      fresh = self._reset(k_reset[jnp.minimum(rows, batch - 1)], only=valid)
-      return keep(jax.tree_util.tree_map(
-          lambda new, old: old.at[rows].set(new, mode="drop"), fresh, nxt))
+    def reset_ended(nxt):
+      def chunk(carry):
+        merged, left = carry
+        rows = jnp.flatnonzero(left, size=self.reset_rows, fill_value=batch)  # batch: none
+        valid = rows < batch
+        fresh = self._reset(k_reset[jnp.minimum(rows, batch - 1)], only=valid)
+        merged = jax.tree_util.tree_map(lambda old, new: old.at[rows].set(new, mode="drop"),
+                                        merged, fresh)
+        return merged, left.at[rows].set(False, mode="drop")
 
-    n_done = jnp.sum(done)
-    if not 0 < self.reset_rows < batch:
-      return jax.lax.cond(n_done > 0, reset_all, lambda n: n, nxt)
-    branch = jnp.where(n_done == 0, 0, jnp.where(n_done <= self.reset_rows, 1, 2))
-    return jax.lax.switch(branch, [lambda n: n, reset_few, reset_all], nxt)
+      merged, _ = jax.lax.while_loop(lambda c: jnp.any(c[1]), chunk, (nxt, done))
+      return keep(merged)
+
+    gathered = 0 < self.reset_rows < batch
+    return jax.lax.cond(jnp.any(done), reset_ended if gathered else reset_all, lambda n: n, nxt)
 
   # -------------------------------------------------------------------------------------------
   # The get-up paths' plans (`[stage.imitation]`).

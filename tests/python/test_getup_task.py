@@ -300,9 +300,9 @@ def test_staggered_clocks_end_first_episodes_at_different_steps(upright_env):
 
 
 def test_auto_reset_of_the_rows_that_ended_equals_a_reset_of_every_row():
-  """On the native backend auto-resets compute fresh episodes for the few rows that ended
-  (env.reset_rows), gathered; the batch after the step is, bit for bit, what a reset of every
-  row (kept where done) gives, with one, reset_rows and more rows ending at once."""
+  """On the native backend auto-resets compute fresh episodes for the rows that ended,
+  env.reset_rows at a time (gathered); the batch after the step is, bit for bit, what a reset of
+  every row (kept where done) gives, with one, reset_rows and more rows ending at once."""
   env = FallRecoveryEnv(default_stage_dict("planar"), backend="native")  # randomized draws
   few = env.reset_rows
   n = few + 4
