@@ -207,9 +207,9 @@ class NativeBackend:
       hb = self._host(nsim)
       hb.batch.state[...] = rows
       hb.write_params(params)
-      # Only the rows the caller keeps: an auto-reset keeps the one or two episodes that
-      # ended out of the batch, and a forward pass of every row cost 5% of a training
-      # iteration. The other rows return their state unforwarded (unspecified, discarded).
+      # Only the rows the caller keeps (an auto-reset's chunk of ended episodes holds padding
+      # rows; a forward pass of every row of the batch cost 5% of a training iteration). The
+      # other rows return their state unforwarded (unspecified, discarded by the caller).
       ids = np.flatnonzero(np.asarray(only)).astype(np.int32)
       failed = self._run(hb, lambda: hb.batch.forward(ids=ids))
       out = self._outputs(hb, failed)
