@@ -579,8 +579,7 @@ class _Parser:
 
   def monitor(self, d):
     p = ["monitor"]
-    d = self._section(d, "monitor", (), ("every", "episodes", "scenarios", "keep_best",
-                                            "final_episodes"))
+    d = self._section(d, "monitor", (), ("every", "episodes", "scenarios", "keep_best"))
     default = MonitorConfig()
     every = self.number(d, "every", p, minimum=0, integer=True, default=default.every)
     episodes = self.number(d, "episodes", p, minimum=0, exclusive=True, integer=True,
@@ -601,16 +600,10 @@ class _Parser:
       self.err(p + ["keep_best"], "keep_best needs the monitor on (every > 0): it keeps the "
                "parameters of the best monitor point")
       return None
-    final_episodes = self.number(d, "final_episodes", p, minimum=0, integer=True,
-                                 default=default.final_episodes)
-    if final_episodes and not keep_best:
-      self.err(p + ["final_episodes"], "final_episodes needs keep_best = true: it measures "
-               "again the monitor points keep_best may return to")
-      return None
-    if every is None or episodes is None or final_episodes is None:
+    if every is None or episodes is None:
       return None
     return MonitorConfig(every=every, episodes=episodes, scenarios=scenarios,
-                         keep_best=keep_best, final_episodes=final_episodes)
+                         keep_best=keep_best)
 
   def success(self, d):
     p = ["success"]

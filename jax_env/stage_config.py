@@ -190,11 +190,6 @@ class MonitorConfig:
   # The stage ends (adaptation phase, final checkpoint) from the PPO parameters of its monitor
   # point with the highest mean stand rate (the latest of equals), not from the last iteration.
   keep_best: bool = False
-  # With keep_best: 0, or the episodes per start with which the stage's end measures again every
-  # monitor point keep_best may return to (new keys), keeping the best of those readings. A few
-  # episodes per start cannot tell 90% from 100% (every point reads 1.0); more at every point
-  # would cost the whole stage as much.
-  final_episodes: int = 0
 
 
 @dataclasses.dataclass(frozen=True)

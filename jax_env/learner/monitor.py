@@ -15,10 +15,7 @@ mean recovery time of the successes, the mean highest Trunk height, and the shar
 termination rule ended (a get-up that a rule cuts short reads here, not as a failure to rise).
 
 The episodes' keys come from the stage seed alone (`MONITOR_SEED_SALT`), the same at every
-monitor call, so successive numbers differ only by the policy. With `final_episodes`, the end of
-PPO measures the points keep_best may return to again, with that many episodes per scenario and
-keys of their own (`FINAL_SEED_SALT`), so that the choice is not made on the readings that made
-the points candidates.
+monitor call, so successive numbers differ only by the policy.
 """
 
 from __future__ import annotations
@@ -35,7 +32,6 @@ from jax_env.scenarios import SCENARIOS
 from jax_env.learner import networks as nets_lib
 
 MONITOR_SEED_SALT = 0x6D6F6E  # "mon"
-FINAL_SEED_SALT = 0x66696E  # "fin"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,26 +61,20 @@ class Monitor:
 
 def make_monitor(config: stage_config.MonitorConfig | None,
                  stage_table: Mapping[str, Any] | None, nets: nets_lib.Networks,
-                 backend: str | None, seed_key: jax.Array, *, final: bool = False
-                 ) -> Monitor | None:
+                 backend: str | None, seed_key: jax.Array) -> Monitor | None:
   """The stage's monitor (`config.scenarios` resolved, see LearnerConfig.from_stage), or None
-  when it is off or the environment cannot be rebuilt (no stage table or backend name).
-  `final`: the end-of-PPO re-measurement instead (`config.final_episodes` episodes per
-  scenario, its own keys), None when final_episodes is 0."""
+  when it is off or the environment cannot be rebuilt (no stage table or backend name)."""
   if config is None or config.every <= 0 or stage_table is None or backend is None:
     return None
   from jax_env.env import FallRecoveryEnv
   from jax_env.evaluation.conditions import evaluation_stage
 
   env = FallRecoveryEnv(evaluation_stage(stage_table), backend=backend)
-  if final and config.final_episodes == 0:
-    return None
   scenarios = tuple(config.scenarios)
-  n = config.final_episodes if final else config.episodes
+  n = config.episodes
   forced = jnp.asarray(np.repeat([SCENARIOS.index(s) for s in scenarios], n),
                        jnp.int32)
-  salt = FINAL_SEED_SALT if final else MONITOR_SEED_SALT
-  keys = jax.random.split(jax.random.fold_in(seed_key, salt), forced.shape[0])
+  keys = jax.random.split(jax.random.fold_in(seed_key, MONITOR_SEED_SALT), forced.shape[0])
   steps = env.episode_steps
   names = ("success", "recovery_time", "max_height", "end")
 

@@ -28,7 +28,6 @@ same inputs, so on one CPU device a resumed run is bit-identical to an uninterru
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import time
 from pathlib import Path
@@ -507,17 +506,14 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
     history = jnp.zeros((batch, net_cfg.history_len, env.obs_size), jnp.float32)
 
   ppo_iter, adapt_iter = _make_steps(env, nets, config, maps, devices)
-  monitor_args = (config.monitor, stage_config, nets, getattr(env, "backend_name", None),
-                  jax.random.fold_in(seed_key(seed), 2))
-  monitor = monitor_lib.make_monitor(*monitor_args)
-  # Built when the end of PPO needs it: a resume past that point never does.
-  final_monitor = functools.partial(monitor_lib.make_monitor, *monitor_args, final=True)
+  monitor = monitor_lib.make_monitor(config.monitor, stage_config, nets,
+                                     getattr(env, "backend_name", None),
+                                     jax.random.fold_in(seed_key(seed), 2))
   stage = _StageRun(
       config=config, net_cfg=net_cfg, names=names, devices=devices, batch=batch, seed=seed,
       checkpoints_dir=Path(stage_dir) / "checkpoints", stage_config=stage_config,
       budgets=_Budgets(steps_per_iter=steps_per_iter, ppo=ppo_budget, adaptation=adapt_budget),
-      steps={"ppo": ppo_iter, "adaptation": adapt_iter}, monitor=monitor,
-      final_monitor=final_monitor, penalty=penalty,
+      steps={"ppo": ppo_iter, "adaptation": adapt_iter}, monitor=monitor, penalty=penalty,
       assist=assist, imitation=imitation, std_bound=std_bound, callback=callback, log=log,
       progress=progress, learner=learner, env_state=env_state, history=history, key=key,
       calibrate=calibrate)
@@ -553,10 +549,6 @@ class Progress:
   # steps of the checkpoint written there.
   best_monitor_rate: float | None = None
   best_monitor_env_steps: int | None = None
-  # With monitor.final_episodes: the env steps of every checkpointed monitor point keep_best may
-  # return to, and, once the end of PPO has measured them again, those readings in that order.
-  candidates: list[int] = dataclasses.field(default_factory=list)
-  final_rates: list[float] | None = None
 
   @property
   def env_steps(self) -> int:
@@ -592,13 +584,12 @@ class _StageRun:
 
   def __init__(self, *, config: LearnerConfig, net_cfg, names, devices, batch: int, seed: int,
                checkpoints_dir: Path, stage_config, budgets: _Budgets, steps, monitor,
-               final_monitor, penalty: ScheduleScale, assist: ScheduleScale, imitation: ScheduleScale,
+               penalty: ScheduleScale, assist: ScheduleScale, imitation: ScheduleScale,
                std_bound: ScheduleScale,
                callback, log, progress: Progress, learner, env_state, history, key, calibrate):
     self.config, self.net_cfg, self.names, self.seed = config, net_cfg, names, seed
     self.checkpoints_dir, self.stage_config = checkpoints_dir, stage_config
     self.budgets, self.steps, self.monitor, self.penalty = budgets, steps, monitor, penalty
-    self.final_monitor = final_monitor
     self.assist = assist
     self.assist_newtons = float(config.assist.force) if config.assist else 0.0
     self.imitation = imitation
@@ -616,8 +607,8 @@ class _StageRun:
     # later one the zero mask (ppo_update then skips the calibration).
     self.calibrate = _put(_replicate(calibrate, self.n_dev), self.sharding)
     self.no_calibration = jax.tree_util.tree_map(jnp.zeros_like, self.calibrate)
-    # A monitor point keep_best may return to is checkpointed at once.
-    self.candidate_unsaved = False
+    # A new best monitor point is checkpointed at once (keep_best returns to it).
+    self.best_unsaved = False
 
   def run(self) -> dict:
     progress, budgets = self.progress, self.budgets
@@ -632,7 +623,7 @@ class _StageRun:
           self.log(f"stage {self.config.stage_name}: finish requested at {progress.env_steps} "
                    "env steps")
           break
-        if progress.iteration % every == 0 or self.candidate_unsaved:
+        if progress.iteration % every == 0 or self.best_unsaved:
           self.save()
       self.keep_best()
       progress.phase = "adaptation" if budgets.adaptation > 0 else "done"
@@ -709,10 +700,7 @@ class _StageRun:
                                                     report["monitor"]["mean_stand_rate"]):
           progress.best_monitor_rate = report["monitor"]["mean_stand_rate"]
           progress.best_monitor_env_steps = progress.ppo_env_steps
-          self.candidate_unsaved = True
-        if config.monitor.keep_best and config.monitor.final_episodes:
-          progress.candidates.append(progress.ppo_env_steps)
-          self.candidate_unsaved = True
+          self.best_unsaved = True
       if tightened and progress.best_monitor_env_steps is not None:
         # The std bound tightens from the next iteration on: keep_best compares only policies
         # trained under the tightest bound, or a monitor point from before (a few episodes per
@@ -721,7 +709,6 @@ class _StageRun:
                  f"{max_std * std_scale:.3g}; keep_best forgets the monitor "
                  f"points before {progress.ppo_env_steps} env steps")
         progress.best_monitor_rate = progress.best_monitor_env_steps = None
-        progress.candidates = []
     bad = sorted(k for k, v in report["losses"].items() if not math.isfinite(v))
     if bad:
       # The parameters are poisoned from here on: stop rather than checkpoint garbage.
@@ -740,8 +727,6 @@ class _StageRun:
     checkpointed at the best monitor point, so the adaptation phase and the final checkpoint
     build on the policy that stood best rather than on the last iteration's."""
     progress = self.progress
-    if progress.candidates and progress.final_rates is None:
-      self.measure_candidates_again()
     if progress.best_monitor_env_steps is None:  # keep_best off, or no monitor point yet
       return
     if progress.best_monitor_env_steps == progress.ppo_env_steps:
@@ -757,33 +742,9 @@ class _StageRun:
              f"monitor stand rate {progress.best_monitor_rate:.3f}, the best of the stage) "
              f"instead of those at {progress.ppo_env_steps} env steps")
 
-  def measure_candidates_again(self) -> None:
-    """monitor.final_episodes: every candidate monitor point's PPO parameters are measured
-    again with that many episodes per scenario, and the best reading (the latest of equals)
-    becomes the best monitor point."""
-    progress = self.progress
-    monitor = self.final_monitor()
-    if monitor is None:  # the monitor cannot be rebuilt (no stage table): keep the readings
-      return
-    host = jax.device_get(_unreplicate(self.learner))
-    rates = []
-    for steps in progress.candidates:
-      tensors = ckpt_lib.load(self.checkpoints_dir / f"{steps:012d}").tensors
-      state = ckpt_lib.restore_learner(host, tensors, fresh_optimizer=False)
-      rates.append(monitor(state.params, state.normalizer)["mean_stand_rate"])
-    progress.final_rates = rates
-    best = None
-    for steps, rate in zip(progress.candidates, rates):
-      if is_new_best(None if best is None else best[1], rate):
-        best = (steps, rate)
-    progress.best_monitor_env_steps, progress.best_monitor_rate = best
-    readings = ", ".join(f"{s} {r:.3f}" for s, r in zip(progress.candidates, rates))
-    self.log(f"stage {self.config.stage_name}: keep_best measured its {len(rates)} candidate "
-             f"monitor points again with {monitor.episodes} episodes per scenario: {readings}")
-
   def save(self) -> Path:
     """A checkpoint of everything an exact resume needs; returns its directory."""
-    self.candidate_unsaved = False
+    self.best_unsaved = False
     progress, config, p = self.progress, self.config, self.config.ppo
     steps = progress.env_steps
     host_learner = jax.device_get(_unreplicate(self.learner))

@@ -486,20 +486,6 @@ def test_keep_best_needs_the_monitor_on_and_a_boolean():
   assert config.StageConfig.from_dict(d).monitor.keep_best is True
 
 
-def test_final_episodes_needs_keep_best_and_a_count():
-  d = default_stage_dict("planar")
-  d["monitor"] = {"every": 5, "final_episodes": 16}
-  assert config.check_stage(d) == [{"path": ["monitor", "final_episodes"], "message":
-                                    "final_episodes needs keep_best = true: it measures again "
-                                    "the monitor points keep_best may return to", "at": "key"}]
-  d["monitor"] = {"every": 5, "keep_best": True, "final_episodes": -1}
-  assert [e["path"] for e in config.check_stage(d)] == [["monitor", "final_episodes"]]
-  d["monitor"] = {"every": 5, "keep_best": True, "final_episodes": 16}
-  assert config.StageConfig.from_dict(d).monitor.final_episodes == 16
-  d["monitor"] = {"every": 5, "keep_best": True}
-  assert config.StageConfig.from_dict(d).monitor.final_episodes == 0  # off by default
-
-
 # -- the deterministic monitor ------------------------------------------------------------------
 
 
@@ -530,14 +516,6 @@ def test_monitor_reports_a_held_stand_as_standing():
   assert out["mean_stand_rate"] == pytest.approx(0.5)
   assert out["terminated"] == {"stand": 0.0, "supine": 0.0}  # no termination rules here
   assert monitor(params, normalizer) == out  # the same episodes every call
-  # The end-of-PPO re-measurement (final_episodes): its own episode count, and none when 0.
-  cfg = config.MonitorConfig(every=1, episodes=2, scenarios=("stand", "supine"), keep_best=True,
-                             final_episodes=3)
-  final = monitor_lib.make_monitor(cfg, table, nets, "native", jax.random.PRNGKey(4), final=True)
-  assert final.episodes == 3
-  assert final(params, normalizer)["stand_rate"] == {"stand": 1.0, "supine": 0.0}
-  assert monitor_lib.make_monitor(config.MonitorConfig(every=1, episodes=2, keep_best=True), table,
-                                  nets, "native", jax.random.PRNGKey(4), final=True) is None
 
 
 def test_monitor_applies_the_stage_terminations_as_the_evaluation_does():

@@ -274,53 +274,6 @@ def test_keep_best_ends_the_stage_from_the_best_monitor_point(tmp_path, monkeypa
   assert not all(np.array_equal(last[k], final[k]) for k in learned_by_ppo)
 
 
-def test_final_episodes_chooses_among_the_candidates_by_a_second_reading(tmp_path, monkeypatch):
-  # [stage.monitor] final_episodes: every monitor point is a candidate, checkpointed, and the end
-  # of PPO measures each again (scripted: 0.3, 0.8, 0.5, 0.4) with the candidate's own
-  # parameters; the stage ends from the best second reading (iteration 2), not from the best
-  # first reading (iteration 3: 0.6, the latest of equals).
-  import dataclasses
-
-  from jax_env import config as config_lib
-
-  final_readings = {}
-
-  def scripted_monitor(*_args, final=False):
-    readings = iter([0.3, 0.8, 0.5, 0.4] if final else [0.6, 0.2, 0.6, 0.1])
-
-    def monitor(params, normalizer):
-      rate = next(readings)
-      if final:  # which parameters were measured: a leaf to compare with the checkpoints
-        final_readings[rate] = np.asarray(params["policy"]["hidden_0"]["kernel"])
-      return {"stand_rate": {"stand": rate}, "recovery_time": {"stand": None},
-              "max_height": {"stand": 0.0}, "mean_stand_rate": rate}
-    monitor.episodes = 32 if final else 1
-    return monitor
-
-  monkeypatch.setattr(train.monitor_lib, "make_monitor", scripted_monitor)
-  cfg = learner_config(env_steps=4 * ITER_STEPS, rma={"adaptation_env_steps": ITER_STEPS})
-  cfg = dataclasses.replace(cfg, monitor=config_lib.MonitorConfig(
-      every=1, episodes=1, scenarios=("stand",), keep_best=True, final_episodes=32))
-  result = train.train_stage(ToyStandUpEnv(), cfg, stage_dir=tmp_path / "run", seed=0,
-                             log_file=tmp_path / "run.log")
-  checkpoints = tmp_path / "run" / "checkpoints"
-  candidates = [i * ITER_STEPS for i in (1, 2, 3, 4)]
-  # (The last iteration's checkpoint is rewritten at the phase boundary, with the kept
-  # parameters; the first three still hold their iterations'.)
-  for steps, rate in zip(candidates[:3], [0.3, 0.8, 0.5]):
-    measured = _params(checkpoints / f"{steps:012d}")["policy/hidden_0/kernel"]
-    assert np.array_equal(final_readings[rate], measured)
-  meta = ckpt_lib.read_meta(result["checkpoint"])["learner"]
-  assert meta["candidates"] == candidates and meta["final_rates"] == [0.3, 0.8, 0.5, 0.4]
-  assert (meta["best_monitor_rate"], meta["best_monitor_env_steps"]) == (0.8, 2 * ITER_STEPS)
-  final, chosen = _params(result["checkpoint"]), _params(checkpoints / f"{2 * ITER_STEPS:012d}")
-  learned_by_ppo = [k for k in final if k.startswith(("policy/", "value/"))]
-  assert learned_by_ppo and all(np.array_equal(final[k], chosen[k]) for k in learned_by_ppo)
-  log = (tmp_path / "run.log").read_text()
-  assert ("keep_best measured its 4 candidate monitor points again with 32 episodes per "
-          f"scenario: {ITER_STEPS} 0.300, {2 * ITER_STEPS} 0.800") in log
-
-
 def test_keep_best_forgets_the_points_before_the_std_bound_tightens(tmp_path, monkeypatch):
   # ppo.action_std_schedule halves the bound after the third iteration: the monitor points of
   # iterations 1–3 (0.6, 0.6, 0.2) were trained at the looser bound and no longer compete, so

@@ -269,8 +269,6 @@ pub struct Monitor {
     pub scenarios: Option<Vec<Scenario>>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub keep_best: Option<bool>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub final_episodes: Option<u32>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]

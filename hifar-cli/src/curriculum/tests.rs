@@ -237,7 +237,7 @@ fn tiny_with_new_keys() -> String {
         "{first}[stage.reward_shaping]\nscale_by_ctrl_dt = true\nclip_at_zero = false\n\
          penalty_schedule = {{ by = \"env_steps\", points = [[0, 0.1], [1_000, 1.0]] }}\n\n\
          [stage.termination]\nlow_height = 0.2\nlow_height_s = 1.0\nupside_down = 0.5\nside_roll = 0.0\n\n\
-         [stage.monitor]\nevery = 10\nepisodes = 4\nscenarios = [\"supine\", \"stand\", \"squat\"]\nkeep_best = true\nfinal_episodes = 16\n\n\
+         [stage.monitor]\nevery = 10\nepisodes = 4\nscenarios = [\"supine\", \"stand\", \"squat\"]\nkeep_best = true\n\n\
          [stage.assist]\nforce = 150.0\nschedule = {{ by = \"stand_rate\", points = [[0, 1.0], [0.5, 0.0]] }}\n\n\
          [stage.imitation]\nweight = 2.0\nforcing = 0.5\nschedule = {{ by = \"env_steps\", points = [[0, 1.0], [2_000, 0.0]] }}\n\n{rest}"
     )
@@ -266,7 +266,7 @@ fn new_optional_keys_parse_and_reach_python_as_written() {
                "penalty_schedule": {"by": "env_steps", "points": [[0.0, 0.1], [1000.0, 1.0]]}})
     );
     assert_eq!(stage["termination"], json!({"low_height": 0.2, "low_height_s": 1.0, "upside_down": 0.5, "side_roll": 0.0}));
-    assert_eq!(stage["monitor"], json!({"every": 10, "episodes": 4, "scenarios": ["supine", "stand", "squat"], "keep_best": true, "final_episodes": 16}));
+    assert_eq!(stage["monitor"], json!({"every": 10, "episodes": 4, "scenarios": ["supine", "stand", "squat"], "keep_best": true}));
     assert_eq!(
         stage["assist"],
         json!({"force": 150.0, "schedule": {"by": "stand_rate", "points": [[0.0, 1.0], [0.5, 0.0]]}})
@@ -280,7 +280,7 @@ fn new_optional_keys_parse_and_reach_python_as_written() {
     assert_eq!(back.to_json(), stage);
 
     // Partial tables give back only their keys; the second stage sets none of them.
-    let text = text.replacen("scale_by_ctrl_dt = true\nclip_at_zero = false\n", "", 1).replacen("episodes = 4\n", "", 1).replacen("keep_best = true\n", "", 1).replacen("final_episodes = 16\n", "", 1);
+    let text = text.replacen("scale_by_ctrl_dt = true\nclip_at_zero = false\n", "", 1).replacen("episodes = 4\n", "", 1).replacen("keep_best = true\n", "", 1);
     let c = parse_text(&text).unwrap_or_else(|e| panic!("{e}"));
     let stage = c.stages()[0].to_json();
     assert_eq!(stage["reward_shaping"].as_object().unwrap().keys().collect::<Vec<_>>(), ["penalty_schedule"]);
@@ -305,7 +305,6 @@ fn mistakes_in_the_new_tables_have_a_position() {
         ("clip_at_zero = false", "clip_at_zero = 0", "clip_at_zero", "reward_shaping.clip_at_zero: invalid type: integer `0`, expected a boolean"),
         ("episodes = 4", "episodes = -4", "episodes", "monitor.episodes: invalid value: integer `-4`, expected a non-negative integer"),
         ("keep_best = true", "keep_best = 1", "keep_best", "monitor.keep_best: invalid type: integer `1`, expected a boolean"),
-        ("final_episodes = 16", "final_episodes = 1.5", "final_episodes", "monitor.final_episodes: invalid type: floating point `1.5`"),
         ("\"stand\", \"squat\"]", "\"standing\", \"squat\"]", "\"standing\"", "unknown value `standing` for stage.monitor.scenarios[1]"),
         ("by = \"env_steps\"", "by = \"steps\"", "by = ", "unknown value `steps` for stage.reward_shaping.penalty_schedule.by; expected one of `env_steps` or `stand_rate`"),
         ("[1_000, 1.0]]", "[1_000, 1.0, 2.0]]", "penalty_schedule", "invalid length 3, expected an array of two numbers [x, scale]"),
