@@ -749,8 +749,9 @@ class _Parser:
   def rma(self, d):
     p = ["rma"]
     d = self._section(d, "rma", ("enabled", "latent_dim", "encoder_hidden", "history_len",
-                                 "adaptation_env_steps", "adaptation_learning_rate"))
-    return self._all(RMAConfig, dict(
+                                 "adaptation_env_steps", "adaptation_learning_rate"),
+                      ("latent_regularization",))
+    rma = self._all(RMAConfig, dict(
         enabled=self.boolean(d, "enabled", p),
         latent_dim=self.number(d, "latent_dim", p, minimum=0, exclusive=True, integer=True),
         encoder_hidden=self.int_list(d, "encoder_hidden", p),
@@ -758,6 +759,14 @@ class _Parser:
         adaptation_env_steps=self.number(d, "adaptation_env_steps", p, minimum=0, integer=True),
         adaptation_learning_rate=self.number(d, "adaptation_learning_rate", p, minimum=0.0,
                                              exclusive=True)))
+    if rma is None or "latent_regularization" not in d:
+      return rma
+    weight = self.number(d, "latent_regularization", p, minimum=0.0)
+    if weight is not None and weight > 0 and not rma.enabled:
+      self.err(p + ["latent_regularization"], f"latent_regularization {weight!r} needs "
+               "enabled = true: without RMA there is no latent to regularize")
+      weight = None
+    return None if weight is None else dataclasses.replace(rma, latent_regularization=weight)
 
   def mirror(self, d):
     d = self._section(d, "mirror", ("weight",))

@@ -272,6 +272,11 @@ class RMAConfig:
   history_len: int
   adaptation_env_steps: int
   adaptation_learning_rate: float
+  # Regularized online adaptation (Fu et al., "Deep Whole-Body Control", CoRL 2022): during
+  # PPO the encoder's latent is pulled toward the adaptation module's estimate with this weight
+  # and the module learns beside PPO, so that the latent the policy relies on is one the
+  # deployable actor can estimate. 0: RMA as Kumar et al. (the module learns only at the end).
+  latent_regularization: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -59,6 +59,9 @@ class Transition:
   teacher: jax.Array | None = None
   teacher_mask: jax.Array | None = None
   forced: jax.Array | None = None  # 1 where the plan's action was taken instead of the policy's
+  # The adaptation module's input at this step (networks.history_window); None unless
+  # [stage.rma] latent_regularization is on.
+  window: jax.Array | None = None
 
 
 @struct.dataclass
@@ -136,7 +139,8 @@ def compute_targets(nets: nets_lib.Networks, params: dict, normalizer, data: Tra
 
 
 def ppo_loss(train_params: dict, normalizer, mb: dict, nets: nets_lib.Networks, cfg,
-             mirror_weight: float, maps, old_log_std: jax.Array, imitation_weight=None):
+             mirror_weight: float, maps, old_log_std: jax.Array, imitation_weight=None,
+             latent_regularization: float = 0.0):
   """PPO loss on one minibatch of single transitions; returns (loss, metrics).
 
   mb: obs, privileged, action, loc, log_prob, target, advantage, weight (1 where the
@@ -144,6 +148,8 @@ def ppo_loss(train_params: dict, normalizer, mb: dict, nets: nets_lib.Networks, 
   teacher and teacher_weight (the path's action, and 1 where it applies and the action took
   effect). imitation_weight: [stage.imitation]'s weight × its schedule's scale (traced), or
   None without [stage.imitation] (then the loss is computed exactly as before it existed).
+  latent_regularization > 0: mb also holds z_hat, the adaptation module's estimate, and the
+  loss pulls the encoder's latent toward it (regularized online adaptation, rma.py).
   """
   pol = train_params["policy"]
   obs_n, priv_n = nets_lib.normalize(normalizer, mb["obs"], mb["privileged"])
@@ -193,6 +199,9 @@ def ppo_loss(train_params: dict, normalizer, mb: dict, nets: nets_lib.Networks, 
                                      mb["teacher_weight"])
     imitation_loss = imitation_weight * imitation_error
     total = total + imitation_loss
+  if latent_regularization > 0:
+    latent_error = jnp.mean(jnp.square(z - mb["z_hat"]))
+    total = total + latent_regularization * latent_error
   kl = _weighted_mean(gaussian_kl(mb["loc"], old_log_std, jax.lax.stop_gradient(loc),
                                   jax.lax.stop_gradient(log_std)), w)
   metrics = {"total": total, "policy": policy_loss, "value": value_loss,
@@ -201,6 +210,8 @@ def ppo_loss(train_params: dict, normalizer, mb: dict, nets: nets_lib.Networks, 
              "kl": kl, "clip_fraction": _weighted_mean(
                  (jnp.abs(ratio - 1) > cfg.clip_epsilon).astype(jnp.float32), w),
              "action_std": jnp.mean(std)}
+  if latent_regularization > 0:
+    metrics["latent_error"] = latent_error
   return total, metrics
 
 
@@ -225,11 +236,13 @@ def bound_action_std(train_params: dict, max_action_std: float | None) -> dict:
 def ppo_update(state: LearnerState, data: Transition, final_obs, final_privileged,
                key: jax.Array, *, nets: nets_lib.Networks, cfg, mirror_weight: float, maps,
                calibrate=None, axis_name: str | None = None, imitation_weight=None,
-               max_action_std=None):
+               max_action_std=None, latent_regularization: float = 0.0):
   """One PPO update on a rollout [T, B_local]; returns (state, metrics averaged).
   calibrate: per-feature masks for `networks.calibrate_normalizer` (the first iteration of a
   stage started from a checkpoint), or None. max_action_std: this iteration's bound on the
-  std (a traced scalar where a schedule moves it); None: cfg.max_action_std."""
+  std (a traced scalar where a schedule moves it); None: cfg.max_action_std.
+  latent_regularization: [stage.rma]'s weight; > 0 needs `data.window` (the module's
+  estimates are computed once, before the epochs, and held fixed like the PPO targets)."""
   if max_action_std is None:
     max_action_std = cfg.max_action_std
   params = state.params
@@ -247,6 +260,9 @@ def ppo_update(state: LearnerState, data: Transition, final_obs, final_privilege
     samples["weight"] = samples["weight"] * (1.0 - data.forced)
     samples["teacher"] = data.teacher
     samples["teacher_weight"] = data.teacher_mask * data.active
+  if latent_regularization > 0:
+    window_n, _ = nets_lib.normalize(normalizer, data.window)
+    samples["z_hat"] = jax.lax.stop_gradient(nets.adapt(params["adaptation"], window_n))
   samples = jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), samples)
   n = samples["obs"].shape[0]
   if n % cfg.num_minibatches:
@@ -256,7 +272,8 @@ def ppo_update(state: LearnerState, data: Transition, final_obs, final_privilege
   optimizer = make_optimizer(cfg.max_grad_norm)
   grad_fn = jax.value_and_grad(
       functools.partial(ppo_loss, nets=nets, cfg=cfg, mirror_weight=mirror_weight, maps=maps,
-                        old_log_std=old_log_std, imitation_weight=imitation_weight),
+                        old_log_std=old_log_std, imitation_weight=imitation_weight,
+                        latent_regularization=latent_regularization),
       has_aux=True)
 
   def minibatch_step(carry, mb):

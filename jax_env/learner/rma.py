@@ -12,6 +12,14 @@ the state distribution it will itself induce, which is what makes RMA robust to 
 errors. The regression target z = encoder(privileged) is frozen, as are the base policy and
 the observation statistics. The deployable actor is then adaptation module + base policy; it
 reads only obs and the observation history (networks.deployable_mean).
+
+Regularized online adaptation (ROA; Fu, Cheng and Pathak, "Deep Whole-Body Control", CoRL
+2022), `[stage.rma] latent_regularization` > 0: the module also learns during PPO, on the PPO
+rollout's windows (`adaptation_update` after every PPO update), and PPO's loss pulls the
+encoder's latent toward the module's estimate with that weight. Kumar et al.'s encoder may put
+into z what no observation history reveals (a push, a contact, the height); the policy then
+leans on a latent the deployable actor cannot reproduce, and the deployable actor loses what
+the privileged one has. The regularization keeps z estimable while PPO still shapes it.
 """
 
 from __future__ import annotations

@@ -310,6 +310,9 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
   def scan_stats(stats):
     return jax.tree_util.tree_map(lambda x: jax.lax.psum(jnp.sum(x), AXIS), stats)
 
+  # [stage.rma] latent_regularization: the PPO rollout also keeps the module's windows.
+  online = nets.config.rma and config.rma.latent_regularization > 0
+
   def ppo_iteration(learner: ppo_lib.LearnerState, env_state, history, key, schedules,
                     calibrate):
     k_roll, k_update = jax.random.split(key)
@@ -341,7 +344,8 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
       tr = ppo_lib.Transition(obs=es.obs, privileged=es.privileged, action=action, loc=loc,
                               log_prob=log_prob, reward=nxt.reward, done=nxt.done,
                               truncation=nxt.truncation, active=es.control_active,
-                              teacher=teacher, teacher_mask=teacher_mask, forced=forced)
+                              teacher=teacher, teacher_mask=teacher_mask, forced=forced,
+                              window=nets_lib.history_window(hist, es.obs) if online else None)
       if rho:
         noise = restart_noise(noise, k, nxt.done)
       return ((nxt, nets_lib.push_history(hist, es.obs, nxt.done), noise),
@@ -349,12 +353,23 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
 
     (env_state, history, _), (data, stats) = jax.lax.scan(
         step, (env_state, history, noise), jax.random.split(k_roll, unroll))
+    if online:  # a key of its own; without it every key is as before the option existed
+      k_update, k_adapt = jax.random.split(k_update)
     learner, metrics = ppo_lib.ppo_update(
         learner, data, env_state.obs, env_state.privileged, k_update, nets=nets, cfg=ppo_cfg,
         mirror_weight=config.mirror_weight, maps=maps, calibrate=calibrate, axis_name=AXIS,
         imitation_weight=schedules[2] if config.imitation is not None else None,
         # Without a schedule the bound is cfg's, a compile-time constant.
-        max_action_std=schedules[3] if ppo_cfg.action_std_schedule is not None else None)
+        max_action_std=schedules[3] if ppo_cfg.action_std_schedule is not None else None,
+        latent_regularization=config.rma.latent_regularization if online else 0.0)
+    if online:
+      # Regularized online adaptation: the module learns beside PPO, on the PPO rollout's
+      # windows, toward the encoder's updated latent.
+      learner, adapt_metrics = rma_lib.adaptation_update(
+          learner, rma_lib.AdaptationBatch(window=data.window, privileged=data.privileged),
+          k_adapt, nets=nets, cfg=ppo_cfg, learning_rate=config.rma.adaptation_learning_rate,
+          axis_name=AXIS)
+      metrics = {**metrics, **adapt_metrics}
     return learner, env_state, history, metrics, scan_stats(stats)
 
   def adaptation_iteration(learner: ppo_lib.LearnerState, env_state, history, key,

@@ -464,6 +464,9 @@ pub struct Rma {
     pub history_len: u32,
     pub adaptation_env_steps: u64,
     pub adaptation_learning_rate: f64,
+    /// Weight pulling the latent toward the adaptation module's estimate during PPO (0: off).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub latent_regularization: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
