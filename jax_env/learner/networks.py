@@ -321,6 +321,13 @@ def push_history(history: jax.Array, obs: jax.Array, done: jax.Array) -> jax.Arr
   return jnp.where(done[:, None, None] > 0, 0.0, nxt)
 
 
+def estimate_latent(nets: Networks, adaptation_params: Params, normalizer,
+                    window: jax.Array) -> jax.Array:
+  """z_hat: the adaptation module's estimate of the latent from a raw observation window."""
+  window_n, _ = normalize(normalizer, window)
+  return nets.adapt(adaptation_params, window_n)
+
+
 def deployable_mean(nets: Networks, params: Params, normalizer, obs: jax.Array,
                     history: jax.Array | None) -> jax.Array:
   """Deterministic action of the deployable actor: adaptation module + base policy.
@@ -331,9 +338,7 @@ def deployable_mean(nets: Networks, params: Params, normalizer, obs: jax.Array,
   obs_n, _ = normalize(normalizer, obs)
   z = None
   if nets.config.rma:
-    window = history_window(history, obs)
-    window_n, _ = normalize(normalizer, window)
-    z = nets.adapt(params["adaptation"], window_n)
+    z = estimate_latent(nets, params["adaptation"], normalizer, history_window(history, obs))
   return nets.policy_mean(params["policy"], obs_n, z)
 
 

@@ -261,8 +261,8 @@ def ppo_update(state: LearnerState, data: Transition, final_obs, final_privilege
     samples["teacher"] = data.teacher
     samples["teacher_weight"] = data.teacher_mask * data.active
   if latent_regularization > 0:
-    window_n, _ = nets_lib.normalize(normalizer, data.window)
-    samples["z_hat"] = jax.lax.stop_gradient(nets.adapt(params["adaptation"], window_n))
+    samples["z_hat"] = jax.lax.stop_gradient(
+        nets_lib.estimate_latent(nets, params["adaptation"], normalizer, data.window))
   samples = jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), samples)
   n = samples["obs"].shape[0]
   if n % cfg.num_minibatches:

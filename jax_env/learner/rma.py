@@ -51,8 +51,7 @@ def latent_targets(nets: nets_lib.Networks, params: dict, normalizer,
 def adaptation_loss(adaptation_params: dict, normalizer, window: jax.Array, target: jax.Array,
                     nets: nets_lib.Networks) -> jax.Array:
   """Mean squared latent error of the adaptation module on a batch of windows."""
-  window_n, _ = nets_lib.normalize(normalizer, window)
-  z_hat = nets.adapt(adaptation_params["adaptation"], window_n)
+  z_hat = nets_lib.estimate_latent(nets, adaptation_params["adaptation"], normalizer, window)
   return jnp.mean(jnp.square(z_hat - target))
 
 
