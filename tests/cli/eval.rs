@@ -65,6 +65,35 @@ fn an_existing_output_directory_is_refused_without_force() {
 }
 
 #[test]
+fn a_run_whose_last_stage_is_unfinished_says_which_stage_it_stands_for() {
+    let dir = tempdir();
+    let run = run_copy(dir.path());
+    // The run as `hifar train` leaves it while its last stage trains.
+    let path = run.join("manifest.json");
+    let mut manifest = read_json(&path);
+    let last = manifest["stages"].as_array_mut().unwrap().last_mut().unwrap();
+    last["status"] = "running".into();
+    last["final_checkpoint"] = Value::Null;
+    let first = manifest["stages"][0]["name"].as_str().unwrap().to_owned();
+    let last_name = manifest["stages"].as_array().unwrap().last().unwrap()["name"].as_str().unwrap().to_owned();
+    std::fs::write(&path, serde_json::to_string_pretty(&manifest).unwrap()).unwrap();
+    let taken = dir.path().join("taken");
+    std::fs::create_dir_all(&taken).unwrap();
+    // Refused for the existing --out (so Python never starts), after the note.
+    let out = hifar(dir.path()).arg("eval").arg(&run).arg("--out").arg(&taken).output().unwrap();
+    assert_eq!(out.status.code(), Some(2), "{}", stderr(&out));
+    let note = format!("stage \"{last_name}\" is running; this is stage \"{first}\"'s final checkpoint");
+    assert!(stderr(&out).contains(&note), "{}", stderr(&out));
+    assert!(!python_started(dir.path()));
+    // A completed run says nothing of the kind.
+    let run2 = dir.path().join("run2");
+    copy_dir(&reference_run().run, &run2);
+    let out = hifar(dir.path()).arg("eval").arg(&run2).arg("--out").arg(&taken).output().unwrap();
+    assert_eq!(out.status.code(), Some(2), "{}", stderr(&out));
+    assert!(!stderr(&out).contains("note:"), "{}", stderr(&out));
+}
+
+#[test]
 fn quick_evaluation_of_a_run_writes_and_prints_its_tables() {
     let dir = tempdir();
     let run = run_copy(dir.path());

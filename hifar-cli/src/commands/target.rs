@@ -51,6 +51,9 @@ pub fn resolve_any(target: &Path) -> Result<PolicyTarget> {
         let checkpoint = run.join(relative);
         let meta = checkpoint::read_meta(&checkpoint)?;
         let stage = Some(stage_table(&manifest, &run, &meta.stage)?);
+        if let Some(notice) = unfinished_after(&manifest, &meta.stage) {
+            eprintln!("note: {shown}: {notice}");
+        }
         return Ok(PolicyTarget { checkpoint, meta, run: Some(run), stage });
     }
     if target.join("checkpoint.json").is_file() {
@@ -73,6 +76,19 @@ fn last_final_checkpoint(manifest: &Manifest) -> Option<String> {
         .rev()
         .filter(|s| matches!(s.status, Status::Completed | Status::ThresholdMissed))
         .find_map(|s| s.final_checkpoint.clone())
+}
+
+/// Why a run's policy is not its last stage's, when a later stage has not completed: a run
+/// that is still training (or was stopped) stands for an earlier stage's policy.
+fn unfinished_after(manifest: &Manifest, picked: &str) -> Option<String> {
+    let index = manifest.stages.iter().position(|s| s.name == picked)?;
+    let later = manifest.stages[index + 1..]
+        .iter()
+        .find(|s| !matches!(s.status, Status::Completed | Status::ThresholdMissed))?;
+    Some(format!(
+        "stage {:?} is {}; this is stage {picked:?}'s final checkpoint, not the run's final policy",
+        later.name, later.status
+    ))
 }
 
 /// The stage table named `stage` in a run's resolved curriculum.
