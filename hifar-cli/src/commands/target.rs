@@ -23,6 +23,8 @@ pub struct PolicyTarget {
     /// For a run, the checkpoint's stage table from the run's resolved curriculum; for a bare
     /// checkpoint None (Python then reads the checkpoint's own `stage_config`).
     pub stage: Option<Value>,
+    /// For a run whose later stage has not completed: why this is not the run's final policy.
+    pub notice: Option<String>,
 }
 
 impl PolicyTarget {
@@ -34,13 +36,25 @@ impl PolicyTarget {
 
 /// A deployable policy target.
 pub fn resolve(target: &Path) -> Result<PolicyTarget> {
-    let resolved = resolve_any(target)?;
+    let resolved = find(target)?;
     checkpoint::check_deployable(&resolved.checkpoint, &resolved.meta)?;
-    Ok(resolved)
+    Ok(announced(resolved))
 }
 
 /// A policy target, deployable or not (a checkpoint of a stage's PPO phase included).
 pub fn resolve_any(target: &Path) -> Result<PolicyTarget> {
+    Ok(announced(find(target)?))
+}
+
+/// The target, once accepted, with its notice (if any) on stderr: a refusal stays one line.
+fn announced(target: PolicyTarget) -> PolicyTarget {
+    if let Some(notice) = &target.notice {
+        eprintln!("note: {notice}");
+    }
+    target
+}
+
+fn find(target: &Path) -> Result<PolicyTarget> {
     let shown = target.display();
     if target.join(MANIFEST).is_file() {
         let run = paths::absolute(target.to_path_buf());
@@ -51,14 +65,12 @@ pub fn resolve_any(target: &Path) -> Result<PolicyTarget> {
         let checkpoint = run.join(relative);
         let meta = checkpoint::read_meta(&checkpoint)?;
         let stage = Some(stage_table(&manifest, &run, &meta.stage)?);
-        if let Some(notice) = unfinished_after(&manifest, &meta.stage) {
-            eprintln!("note: {shown}: {notice}");
-        }
-        return Ok(PolicyTarget { checkpoint, meta, run: Some(run), stage });
+        let notice = unfinished_after(&manifest, &meta.stage).map(|why| format!("{shown}: {why}"));
+        return Ok(PolicyTarget { checkpoint, meta, run: Some(run), stage, notice });
     }
     if target.join("checkpoint.json").is_file() {
         let meta = checkpoint::read_meta(target)?;
-        return Ok(PolicyTarget { checkpoint: paths::absolute(target.to_path_buf()), meta, run: None, stage: None });
+        return Ok(PolicyTarget { checkpoint: paths::absolute(target.to_path_buf()), meta, run: None, stage: None, notice: None });
     }
     if !target.exists() {
         return Err(bad_input!("{shown}: no such checkpoint or run directory"));
