@@ -184,6 +184,12 @@ pub enum Status {
 }
 
 impl Status {
+    /// A stage in this state has trained to the end (its budget used, early or not) and has a
+    /// final checkpoint; every other state means it still has to be trained.
+    pub fn is_finished(self) -> bool {
+        matches!(self, Status::Completed | Status::ThresholdMissed)
+    }
+
     pub fn as_str(self) -> &'static str {
         match self {
             Status::Pending => "pending",
@@ -286,7 +292,7 @@ impl Manifest {
 
     /// Index of the stage that is (or would be) trained next; `None` when all are done.
     pub fn current_stage(&self) -> Option<usize> {
-        self.stages.iter().position(|s| !matches!(s.status, Status::Completed | Status::ThresholdMissed))
+        self.stages.iter().position(|s| !s.status.is_finished())
     }
 }
 

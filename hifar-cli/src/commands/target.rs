@@ -9,7 +9,7 @@ use anyhow::Result;
 use serde_json::Value;
 
 use crate::checkpoint::{self, CheckpointMeta};
-use crate::run_dir::{Manifest, Status, MANIFEST};
+use crate::run_dir::{Manifest, MANIFEST};
 use crate::{bad_input, paths};
 
 /// A resolved `CKPT|RUN` argument.
@@ -86,7 +86,7 @@ fn last_final_checkpoint(manifest: &Manifest) -> Option<String> {
         .stages
         .iter()
         .rev()
-        .filter(|s| matches!(s.status, Status::Completed | Status::ThresholdMissed))
+        .filter(|s| s.status.is_finished())
         .find_map(|s| s.final_checkpoint.clone())
 }
 
@@ -96,7 +96,7 @@ fn unfinished_after(manifest: &Manifest, picked: &str) -> Option<String> {
     let index = manifest.stages.iter().position(|s| s.name == picked)?;
     let later = manifest.stages[index + 1..]
         .iter()
-        .find(|s| !matches!(s.status, Status::Completed | Status::ThresholdMissed))?;
+        .find(|s| !s.status.is_finished())?;
     Some(format!(
         "stage {:?} is {}; this is stage {picked:?}'s final checkpoint, not the run's final policy",
         later.name, later.status

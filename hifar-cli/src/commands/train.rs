@@ -346,7 +346,7 @@ fn reusable_stages(dir: &Path, source: &Manifest, plan: &Plan) -> Result<Reuse> 
             stop = Some(format!("it has no stage {}", index + 1));
             break;
         };
-        let done = matches!(record.status, Status::Completed | Status::ThresholdMissed) && record.final_checkpoint.is_some();
+        let done = record.status.is_finished() && record.final_checkpoint.is_some();
         if record.name != stage.name || source.curriculum.resolved["stage"][index] != stage.json {
             stop = Some(format!("its stage {} ({}) has other settings than this curriculum's {}", index + 1, record.name, stage.name));
             break;
@@ -477,7 +477,7 @@ fn train_stages(
     console: &Console,
 ) -> Result<(), StageFailure> {
     for stage in &plan.stages {
-        if matches!(manifest.stages[stage.index].status, Status::Completed | Status::ThresholdMissed) {
+        if manifest.stages[stage.index].status.is_finished() {
             continue;
         }
         if interrupt.load(Ordering::SeqCst) {
@@ -689,7 +689,7 @@ fn truncate_metrics(run: &RunDir, manifest: &Manifest, stage: &str, kept_steps: 
     let done: Vec<&str> = manifest
         .stages
         .iter()
-        .filter(|s| matches!(s.status, Status::Completed | Status::ThresholdMissed))
+        .filter(|s| s.status.is_finished())
         .map(|s| s.name.as_str())
         .collect();
     let mut kept = Vec::new();
