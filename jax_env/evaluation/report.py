@@ -696,12 +696,14 @@ def _monitor_table(spans: Sequence[StageSpan]) -> list[str]:
       last.append((span, rows[-1]))
   if not last:
     return []
+  # The actor: the privileged one during PPO, the deployable one in the adaptation phase.
   lines = ["Last monitor of each stage:", "",
-           "| stage | env steps | mean | " + " | ".join(f"`{n}`" for n in names) + " |",
-           "|---|---:|---:|" + "---:|" * len(names)]
+           "| stage | env steps | actor | mean | " + " | ".join(f"`{n}`" for n in names) + " |",
+           "|---|---:|---|---:|" + "---:|" * len(names)]
   for span, r in last:
     rates = _monitor_rates(r)
-    lines.append(f"| {span.name} | {int(r['env_steps']):,} "
+    actor = r["monitor"].get("actor", "privileged") if isinstance(r.get("monitor"), dict) else "—"
+    lines.append(f"| {span.name} | {int(r['env_steps']):,} | {actor} "
                  f"| {_percent(_number(_monitor_mean(r)))} | "
                  + " | ".join(_percent(_number(rates.get(n))) if n in rates else "—"
                               for n in names) + " |")

@@ -29,6 +29,7 @@ import numpy as np
 
 from jax_env import stage_config
 from jax_env.scenarios import SCENARIOS
+from jax_env.evaluation.policy import DEPLOYABLE, PRIVILEGED
 from jax_env.learner import networks as nets_lib
 
 MONITOR_SEED_SALT = 0x6D6F6E  # "mon"
@@ -36,14 +37,14 @@ MONITOR_SEED_SALT = 0x6D6F6E  # "mon"
 
 @dataclasses.dataclass(frozen=True)
 class Monitor:
-  """Runs the monitor episodes; `__call__(params, normalizer) -> progress["monitor"]`."""
+  """Runs the monitor episodes; `__call__(params, normalizer[, actor]) -> progress["monitor"]`."""
 
   scenarios: tuple[str, ...]
   episodes: int
-  run: Callable[[Any, Any], dict]
+  runs: Mapping[str, Callable[[Any, Any], dict]]  # by actor; each jit-compiled on first use
 
-  def __call__(self, params, normalizer) -> dict:
-    out = jax.device_get(self.run(params, normalizer))
+  def __call__(self, params, normalizer, actor: str = PRIVILEGED) -> dict:
+    out = jax.device_get(self.runs[actor](params, normalizer))
     per = {k: np.asarray(v).reshape(len(self.scenarios), self.episodes) for k, v in out.items()}
     result: dict[str, Any] = {"stand_rate": {}, "recovery_time": {}, "max_height": {},
                               "terminated": {}}
@@ -56,6 +57,7 @@ class Monitor:
       result["max_height"][name] = float(np.mean(per["max_height"][i]))
       result["terminated"][name] = float(np.mean(np.isin(per["end"][i], rules)))
     result["mean_stand_rate"] = float(np.mean(list(result["stand_rate"].values())))
+    result["actor"] = actor
     return result
 
 
@@ -78,24 +80,36 @@ def make_monitor(config: stage_config.MonitorConfig | None,
   steps = env.episode_steps
   names = ("success", "recovery_time", "max_height", "end")
 
-  @jax.jit
-  def run(params, normalizer):
-    state = env.reset(keys, scenario=forced)
+  def make_run(actor: str):
+    deployable = actor == DEPLOYABLE
+    history_shape = (forced.shape[0], nets.config.history_len, nets.config.obs_size)
 
-    def step(carry, _):
-      es, ended, record = carry
-      action = nets_lib.privileged_mean(nets, params, normalizer, es.obs, es.privileged)
-      nxt = env.step(es, action)
-      first = (nxt.done > 0) & ~ended
-      record = {k: jnp.where(first, nxt.episode_metrics[k], record[k]) for k in names}
-      return (nxt, ended | first, record), None
+    @jax.jit
+    def run(params, normalizer):
+      state = env.reset(keys, scenario=forced)
 
-    record = {k: jnp.zeros(forced.shape, jnp.float32) for k in names}
-    (_, _, record), _ = jax.lax.scan(step, (state, jnp.zeros(forced.shape, bool), record),
-                                     None, length=steps)
-    return record
+      def step(carry, _):
+        es, hist, ended, record = carry
+        if deployable:  # as `hifar eval` acts: the observation history, no privileged input
+          action = nets_lib.deployable_mean(nets, params, normalizer, es.obs, hist)
+        else:
+          action = nets_lib.privileged_mean(nets, params, normalizer, es.obs, es.privileged)
+        nxt = env.step(es, action)
+        hist = nets_lib.push_history(hist, es.obs, nxt.done) if deployable else hist
+        first = (nxt.done > 0) & ~ended
+        record = {k: jnp.where(first, nxt.episode_metrics[k], record[k]) for k in names}
+        return (nxt, hist, ended | first, record), None
 
-  return Monitor(scenarios=scenarios, episodes=n, run=run)
+      record = {k: jnp.zeros(forced.shape, jnp.float32) for k in names}
+      hist = jnp.zeros(history_shape, jnp.float32) if deployable else None
+      carry = (state, hist, jnp.zeros(forced.shape, bool), record)
+      (_, _, _, record), _ = jax.lax.scan(step, carry, None, length=steps)
+      return record
+
+    return run
+
+  return Monitor(scenarios=scenarios, episodes=n,
+                 runs={actor: make_run(actor) for actor in (PRIVILEGED, DEPLOYABLE)})
 
 
 def is_due(iteration: int, every: int, last: bool) -> bool:

@@ -11,7 +11,9 @@ the penalty scale and the assisting force), and a fresh environment batch has it
 clocks staggered once. When the PPO budget (`advance.env_steps`) is spent or the callback
 answers "finish", the RMA adaptation phase runs for `rma.adaptation_env_steps` (rollouts acting
 with the adaptation module's own estimate, then latent regression, rma.adaptation_update), and
-a final checkpoint is written.
+a final checkpoint is written. With `[stage.monitor] keep_best` the monitor judges the
+deployable actor during that phase, and the stage ends with the adaptation module that stood
+best — the module the phase started from included, where PPO trained it online (ROA).
 
 Randomness comes only from the stage seed: key → (init, env reset, training); every iteration
 splits the training key into one key per device. The learner state is replicated on the
@@ -538,6 +540,8 @@ def train_stage(env, config: LearnerConfig, *, stage_dir: str | Path, seed: int,
 
 
 PHASES = ("ppo", "adaptation", "done")
+# The actor the monitor judges in each training phase: the one whose parameters it trains.
+MONITOR_ACTOR = {"ppo": monitor_lib.PRIVILEGED, "adaptation": monitor_lib.DEPLOYABLE}
 
 
 def is_new_best(best: float | None, rate: float) -> bool:
@@ -643,6 +647,7 @@ class _StageRun:
       self.keep_best()
       progress.phase = "adaptation" if budgets.adaptation > 0 else "done"
       if progress.phase == "adaptation":
+        self.enter_adaptation()
         self.save()  # the phase boundary: a resume must not re-enter PPO
 
     if progress.phase == "adaptation":
@@ -652,8 +657,10 @@ class _StageRun:
         if answer == "interrupt":
           return self.interrupted()
         # "finish" judges the PPO policy; the adaptation phase always completes its budget.
-        if progress.iteration % every == 0 and progress.adaptation_env_steps < budgets.adaptation:
+        if progress.adaptation_env_steps < budgets.adaptation and (
+            progress.iteration % every == 0 or self.best_unsaved):
           self.save()
+      self.keep_best()
       progress.phase = "done"
 
     directory = self.save()
@@ -706,16 +713,14 @@ class _StageRun:
       std_scale = self.std_bound.after(progress.std_scale, progress.ppo_env_steps,
                                        report["stand_rate"])
       tightened, progress.std_scale = std_scale < progress.std_scale, std_scale
-      last = progress.ppo_env_steps >= self.budgets.ppo
-      if self.monitor is not None and monitor_lib.is_due(progress.iteration,
-                                                         config.monitor.every, last):
-        host = _unreplicate(self.learner)
-        report["monitor"] = self.monitor(host.params, host.normalizer)
-        if config.monitor.keep_best and is_new_best(progress.best_monitor_rate,
-                                                    report["monitor"]["mean_stand_rate"]):
-          progress.best_monitor_rate = report["monitor"]["mean_stand_rate"]
-          progress.best_monitor_env_steps = progress.ppo_env_steps
-          self.best_unsaved = True
+    last = (progress.ppo_env_steps >= self.budgets.ppo if phase == "ppo"
+            else progress.adaptation_env_steps >= self.budgets.adaptation)
+    if self.monitor is not None and monitor_lib.is_due(progress.iteration,
+                                                       config.monitor.every, last):
+      # PPO trains the base policy, which the privileged actor judges; the adaptation phase
+      # trains the module, which only the deployable actor reads.
+      report["monitor"] = self.run_monitor(MONITOR_ACTOR[phase])
+    if phase == "ppo":
       if tightened and progress.best_monitor_env_steps is not None:
         # The std bound tightens from the next iteration on: keep_best compares only policies
         # trained under the tightest bound, or a monitor point from before (a few episodes per
@@ -737,15 +742,48 @@ class _StageRun:
       raise ValueError(f"progress callback answered {answer!r}; valid: {', '.join(ANSWERS)}")
     return answer
 
+  def run_monitor(self, actor: str) -> dict:
+    """The monitor of the current parameters with `actor`; a new best monitor point of
+    [stage.monitor] keep_best is checkpointed right after (`best_unsaved`)."""
+    progress = self.progress
+    host = _unreplicate(self.learner)
+    result = self.monitor(host.params, host.normalizer, actor)
+    if self.config.monitor.keep_best and is_new_best(progress.best_monitor_rate,
+                                                     result["mean_stand_rate"]):
+      progress.best_monitor_rate = result["mean_stand_rate"]
+      progress.best_monitor_env_steps = progress.env_steps
+      self.best_unsaved = True
+    return result
+
+  def enter_adaptation(self) -> None:
+    """The PPO phase is over: keep_best starts over for the adaptation module. Where PPO trained
+    the module online (ROA) the deployable actor as PPO left it is the first candidate, so that
+    the phase keeps it unless the module the phase trains stands better; its checkpoint is the
+    phase boundary's, written next."""
+    progress = self.progress
+    progress.best_monitor_rate = progress.best_monitor_env_steps = None
+    self.best_unsaved = False
+    if (self.monitor is None or not self.config.monitor.keep_best
+        or not self.config.rma.latent_regularization > 0):
+      return
+    result = self.run_monitor(monitor_lib.DEPLOYABLE)
+    self.best_unsaved = False  # the boundary checkpoint follows at once
+    self.log(f"stage {self.config.stage_name}: the deployable actor with the module PPO trained "
+             f"online: mean monitor stand rate {result['mean_stand_rate']:.3f}")
+
   def keep_best(self) -> None:
-    """At the end of PPO with [stage.monitor] keep_best: the learner goes back to the state
-    checkpointed at the best monitor point, so the adaptation phase and the final checkpoint
-    build on the policy that stood best rather than on the last iteration's."""
+    """At the end of a phase with [stage.monitor] keep_best: the learner goes back to the state
+    checkpointed at the phase's best monitor point — at the end of PPO, so that the adaptation
+    phase and the final checkpoint build on the policy that stood best rather than on the last
+    iteration's; at the end of the adaptation phase, the adaptation module that stood best (the
+    base policy is the same at every point of that phase)."""
     progress = self.progress
     if progress.best_monitor_env_steps is None:  # keep_best off, or no monitor point yet
       return
-    if progress.best_monitor_env_steps == progress.ppo_env_steps:
-      self.log(f"stage {self.config.stage_name}: the last PPO iteration is the best monitor "
+    phase, what = (("PPO", "PPO parameters") if progress.phase == "ppo"
+                   else ("adaptation", "adaptation module"))
+    if progress.best_monitor_env_steps == progress.env_steps:
+      self.log(f"stage {self.config.stage_name}: the last {phase} iteration is the best monitor "
                f"point (mean stand rate {progress.best_monitor_rate:.3f}); kept")
       return
     directory = self.checkpoints_dir / f"{progress.best_monitor_env_steps:012d}"
@@ -753,9 +791,9 @@ class _StageRun:
     host = jax.device_get(_unreplicate(self.learner))
     restored = ckpt_lib.restore_learner(host, best.tensors, fresh_optimizer=False)
     self.learner = _put(_replicate(restored, self.n_dev), self.sharding)
-    self.log(f"stage {self.config.stage_name}: keeping the PPO parameters of {directory} (mean "
-             f"monitor stand rate {progress.best_monitor_rate:.3f}, the best of the stage) "
-             f"instead of those at {progress.ppo_env_steps} env steps")
+    self.log(f"stage {self.config.stage_name}: keeping the {what} of {directory} (mean "
+             f"monitor stand rate {progress.best_monitor_rate:.3f}, the best of the {phase} "
+             f"phase) instead of those at {progress.env_steps} env steps")
 
   def save(self) -> Path:
     """A checkpoint of everything an exact resume needs; returns its directory."""

@@ -515,7 +515,13 @@ def test_monitor_reports_a_held_stand_as_standing():
   assert out["max_height"]["stand"] > 0.6 > out["max_height"]["supine"]
   assert out["mean_stand_rate"] == pytest.approx(0.5)
   assert out["terminated"] == {"stand": 0.0, "supine": 0.0}  # no termination rules here
+  assert out["actor"] == "privileged"
   assert monitor(params, normalizer) == out  # the same episodes every call
+  # The deployable actor (the adaptation phase's monitor) reads the observation history; the
+  # zero output layer holds the stand whatever latent the module estimates.
+  deployable = monitor(params, normalizer, "deployable")
+  assert deployable["actor"] == "deployable"
+  assert deployable["stand_rate"] == out["stand_rate"]
 
 
 def test_monitor_applies_the_stage_terminations_as_the_evaluation_does():

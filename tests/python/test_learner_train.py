@@ -272,49 +272,92 @@ def test_u64_seeds_keep_every_bit():
 
 def _script_monitor(monkeypatch, rates):
   """The toy task has no MuJoCo scene for the real monitor (tested on a held `stand` in
-  test_getup_task.py): its mean stand rates are scripted, one per monitor point."""
+  test_getup_task.py): its mean stand rates are scripted, one per monitor point. Returns the
+  actors the monitor was asked to judge, in order."""
+  actors = []
 
   def scripted_monitor(*_args):  # one per stage, as make_monitor
     readings = iter(rates)
 
-    def monitor(params, normalizer):
+    def monitor(params, normalizer, actor):
+      actors.append(actor)
       rate = next(readings)
       return {"stand_rate": {"stand": rate}, "recovery_time": {"stand": None},
-              "max_height": {"stand": 0.0}, "mean_stand_rate": rate}
+              "max_height": {"stand": 0.0}, "mean_stand_rate": rate, "actor": actor}
     return monitor
 
   monkeypatch.setattr(train.monitor_lib, "make_monitor", scripted_monitor)
+  return actors
+
+
+def _keep_best_config(ppo_iterations: int, adaptation_iterations: int, **rma):
+  import dataclasses
+
+  from jax_env import config as config_lib
+
+  cfg = learner_config(env_steps=ppo_iterations * ITER_STEPS,
+                       rma={"adaptation_env_steps": adaptation_iterations * ITER_STEPS, **rma})
+  return dataclasses.replace(cfg, monitor=config_lib.MonitorConfig(
+      every=1, episodes=1, scenarios=("stand",), keep_best=True))
 
 
 def test_keep_best_ends_the_stage_from_the_best_monitor_point(tmp_path, monkeypatch):
   # [stage.monitor] keep_best: the adaptation phase and the final checkpoint build on the PPO
   # parameters of the monitor point with the best mean stand rate, the latest of equals
-  # (scripted readings: 0.2, 0.6, 0.6, 0.1).
+  # (scripted readings: 0.2, 0.6, 0.6, 0.1; then 0.3, 0.3 for the adaptation phase's two
+  # iterations, where the deployable actor is judged).
   import dataclasses
 
-  from jax_env import config as config_lib
-
-  _script_monitor(monkeypatch, [0.2, 0.6, 0.6, 0.1])
+  actors = _script_monitor(monkeypatch, [0.2, 0.6, 0.6, 0.1, 0.3, 0.3])
 
   def run(name, keep_best):
-    cfg = learner_config(env_steps=4 * ITER_STEPS, rma={"adaptation_env_steps": 2 * ITER_STEPS})
-    cfg = dataclasses.replace(cfg, monitor=config_lib.MonitorConfig(
-        every=1, episodes=1, scenarios=("stand",), keep_best=keep_best))
+    cfg = _keep_best_config(4, 2)
+    cfg = dataclasses.replace(cfg, monitor=dataclasses.replace(cfg.monitor, keep_best=keep_best))
     return train.train_stage(ToyStandUpEnv(), cfg, stage_dir=tmp_path / name, seed=0,
                              log_file=tmp_path / f"{name}.log")
 
   result = run("best", keep_best=True)
+  assert actors == ["privileged"] * 4 + ["deployable"] * 2
   best_dir = tmp_path / "best" / "checkpoints" / f"{3 * ITER_STEPS:012d}"
   assert best_dir.is_dir()  # checkpointed when it became the best (checkpoint_every is 1000)
   final, best = _params(result["checkpoint"]), _params(best_dir)
   learned_by_ppo = [k for k in final if k.startswith(("policy/", "value/"))]
   assert learned_by_ppo and all(np.array_equal(final[k], best[k]) for k in learned_by_ppo)
+  # The adaptation phase's own keep_best: of its equal readings, the last module.
   meta = ckpt_lib.read_meta(result["checkpoint"])["learner"]
-  assert (meta["best_monitor_rate"], meta["best_monitor_env_steps"]) == (0.6, 3 * ITER_STEPS)
-  assert "keeping the PPO parameters of" in (tmp_path / "best.log").read_text()
+  assert (meta["best_monitor_rate"], meta["best_monitor_env_steps"]) == (0.3, 6 * ITER_STEPS)
+  log = (tmp_path / "best.log").read_text()
+  assert "keeping the PPO parameters of" in log
+  assert "the last adaptation iteration is the best monitor point" in log
 
+  actors.clear()
   last = _params(run("last", keep_best=False)["checkpoint"])
   assert not all(np.array_equal(last[k], final[k]) for k in learned_by_ppo)
+
+
+@pytest.mark.parametrize("boundary, kept", [(0.9, "boundary"), (0.5, "adapted")])
+def test_keep_best_keeps_the_online_module_unless_the_adaptation_phase_betters_it(
+    tmp_path, monkeypatch, boundary, kept):
+  # With latent_regularization (ROA) PPO trains the adaptation module online, so the module the
+  # adaptation phase starts from competes with the phase's own: the deployable actor is judged
+  # at the phase boundary (`boundary`) and after each adaptation iteration (0.4, 0.7).
+  actors = _script_monitor(monkeypatch, [0.5, 0.5, boundary, 0.4, 0.7])
+  cfg = _keep_best_config(2, 2, latent_regularization=1.0)
+  result = train.train_stage(ToyStandUpEnv(), cfg, stage_dir=tmp_path / "run", seed=0,
+                             log_file=tmp_path / "run.log")
+  assert actors == ["privileged"] * 2 + ["deployable"] * 3
+  boundary_dir = tmp_path / "run" / "checkpoints" / f"{2 * ITER_STEPS:012d}"
+  final, at_boundary = _params(result["checkpoint"]), _params(boundary_dir)
+  module = [k for k in final if k.startswith("adaptation/")]
+  same = all(np.array_equal(final[k], at_boundary[k]) for k in module)
+  log = (tmp_path / "run.log").read_text()
+  assert "the deployable actor with the module PPO trained online" in log
+  if kept == "boundary":
+    assert module and same
+    assert f"keeping the adaptation module of {boundary_dir}" in log
+  else:
+    assert module and not same
+    assert "the last adaptation iteration is the best monitor point" in log
 
 
 def test_keep_best_forgets_the_points_before_the_std_bound_tightens(tmp_path, monkeypatch):
