@@ -7,9 +7,10 @@ runs `monitor.episodes` episodes from each monitored start scenario under nomina
 (evaluation.conditions.evaluation_stage: no randomization, pushes or delay, flat ground; the
 stage's terminations apply, as in `hifar eval`, so that a get-up through a terminated posture —
 head down past `termination.upside_down` — counts as the failure the evaluation will call it)
-with the mean action of the training-time policy (the privileged actor: the encoder's latent of
-the simulator's state; `hifar eval --actor privileged` acts the same way, the deployable actor
-through the adaptation module, which trains only at the end of a stage), and reports per
+with a noise-free actor — during PPO the training-time policy (the privileged actor: the
+encoder's latent of the simulator's state, as `hifar eval --actor privileged` acts), during
+the adaptation phase the deployable one (the adaptation module's latent of the observation
+history, as `hifar eval` acts), each the actor whose parameters that phase trains — and reports per
 scenario: the stand rate (stable standing held for success.hold_s, the paper's criterion), the
 mean recovery time of the successes, the mean highest Trunk height, and the share of episodes a
 termination rule ended (a get-up that a rule cuts short reads here, not as a failure to rise).

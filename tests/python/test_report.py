@@ -329,13 +329,18 @@ def test_monitor_stand_rate_per_start_state_is_plotted_across_stages(tmp_path):
   for line in lines:
     if line["iteration"] % 5 == 0 and line["phase"] == "ppo":
       line["monitor"] = _monitor(line["iteration"], line["stage"])
+  # planar's adaptation phase ends with a monitor of the deployable actor (the PPO ones carry
+  # no actor, as metrics written before the field existed: the privileged one).
+  last_planar = [l for l in lines if l["stage"] == "planar"][-1]
+  assert last_planar["phase"] == "adaptation"
+  last_planar["monitor"] = {**_monitor(30, "planar"), "actor": "deployable"}
   (run / "metrics.jsonl").write_text("".join(json.dumps(l) + "\n" for l in lines))
   records, _ = report_lib.read_metrics(run / "metrics.jsonl")
   spans = report_lib.stage_spans(report_lib.read_manifest(run), records)
   assert report_lib.monitor_scenarios(spans) == [*MONITORED, "lateral"]
-  # 6 planar + 2 full monitors: every start state's points but the two nulls, and the means.
+  # 7 planar + 2 full monitors: every start state's points but the two nulls, and the means.
   drawn = report_lib.plot_monitor(spans, tmp_path / "m.png")
-  assert drawn == 6 * 5 + 2 * 6 - 2 + 8
+  assert drawn == 7 * 5 + 2 * 6 - 2 + 9
 
   result = report_lib.report({"run": str(run), "out_dir": str(run / "report")})
   monitor = run / "report" / "monitor_stand_rate.png"
@@ -344,12 +349,14 @@ def test_monitor_stand_rate_per_start_state_is_plotted_across_stages(tmp_path):
   assert matplotlib.image.imread(monitor)[..., :3].std() > 0.01
   md = Path(result["markdown"]).read_text()
   assert "![stand rate per start state](monitor_stand_rate.png)" in md
-  assert "| stage | env steps | mean | `stand` | `ksi_prone_1` | `ksi_supine_1` | `supine` | " \
-         "`prone` | `lateral` |" in md
-  # planar's last monitor (iteration 30): every start state learned; full's (iteration 10).
-  assert f"| planar | {30 * STEPS_PER_ITER:,} | 100% | 100% | 100% | 100% | 100% | 100% | — |" \
-      in md
-  assert f"| full | {10 * STEPS_PER_ITER:,} | 38% | 100% | 100% | 0% | 0% | 0% | 25% |" in md
+  assert "| stage | env steps | actor | mean | `stand` | `ksi_prone_1` | `ksi_supine_1` | " \
+         "`supine` | `prone` | `lateral` |" in md
+  # planar's last monitor (the adaptation phase's): every start state learned; full's
+  # (iteration 10, PPO).
+  assert (f"| planar | {32 * STEPS_PER_ITER:,} | deployable | 100% | 100% | 100% | 100% | "
+          "100% | 100% | — |") in md
+  assert (f"| full | {10 * STEPS_PER_ITER:,} | privileged | 38% | 100% | 100% | 0% | 0% | 0% | "
+          "25% |") in md
   assert "this plot is skipped" not in md
 
 
