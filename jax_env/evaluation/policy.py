@@ -64,15 +64,24 @@ def check_adaptation_trained(meta: dict, checkpoint_dir: str | Path) -> None:
   run, that module is its random initialisation (or whatever the stage started from), so acting,
   evaluating, recording or exporting it would measure noise. The learner counts the phase's env
   steps in checkpoint.json's "learner" section (`adaptation_env_steps`); a checkpoint with
-  `network.rma` true whose count is 0, or that has no such section, is refused. The one rule
-  `hifar act`, `eval`, `rollout` and `export` share.
+  `network.rma` true whose count is 0, or that has no such section, is refused — unless its
+  stage trains the module beside PPO (`rma.latent_regularization` > 0 in its `stage_config`)
+  and PPO has run (`ppo_env_steps` > 0). The one rule `hifar act`, `eval`, `rollout` and
+  `export` share (Rust applies it before Python starts: checkpoint::check_deployable).
   """
   network = meta.get("network")
   if not (isinstance(network, dict) and network.get("rma") is True):
     return
   learner = meta.get("learner")
-  steps = learner.get("adaptation_env_steps") if isinstance(learner, dict) else None
-  if isinstance(steps, (int, float)) and not isinstance(steps, bool) and steps > 0:
+
+  def positive(table, key) -> bool:
+    value = table.get(key) if isinstance(table, dict) else None
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0
+
+  stage = meta.get(ckpt_lib.STAGE_CONFIG_KEY)
+  online = positive(stage.get("rma") if isinstance(stage, dict) else None,
+                    "latent_regularization")
+  if positive(learner, "adaptation_env_steps") or (online and positive(learner, "ppo_env_steps")):
     return
   raise ckpt_lib.CheckpointError(
       f"{checkpoint_dir}: its RMA adaptation module was never trained (stage "

@@ -500,6 +500,16 @@ def test_an_untrained_adaptation_module_is_refused(fresh_checkpoint, tmp_path):
   # Without RMA there is no adaptation module to train: nothing to refuse.
   policy_lib.check_adaptation_trained({"network": {"rma": False}, "stage": "planar"}, untrained)
   policy_lib.check_adaptation_trained(meta, fresh_checkpoint)
+  # A stage that trains the module beside PPO (ROA): its PPO checkpoints are deployable once
+  # PPO has run, as Rust's checkpoint::check_deployable rules.
+  def ppo_checkpoint(weight, ppo_env_steps):
+    return {"network": {"rma": True}, "stage": "full",
+            "learner": {"phase": "ppo", "ppo_env_steps": ppo_env_steps, "adaptation_env_steps": 0},
+            ckpt_lib.STAGE_CONFIG_KEY: {"rma": {"latent_regularization": weight}}}
+  policy_lib.check_adaptation_trained(ppo_checkpoint(0.5, 4096), untrained)
+  for weight, steps in ((0.5, 0), (0.0, 4096)):
+    with pytest.raises(ckpt_lib.CheckpointError, match="was never trained"):
+      policy_lib.check_adaptation_trained(ppo_checkpoint(weight, steps), untrained)
 
 
 def test_the_privileged_actor_acts_without_the_adaptation_module(fresh_checkpoint, tmp_path):

@@ -138,13 +138,25 @@ pub fn parse_meta(path: &Path, text: &str) -> Result<CheckpointMeta, CheckpointE
 /// Refuses a checkpoint whose deployable actor would act with an RMA adaptation module that
 /// never trained: `network.rma` is true but the `"learner"` section of `checkpoint.json` is
 /// missing or counts `adaptation_env_steps == 0` (a stage that ended, or was stopped, before
-/// its adaptation phase). `act`, `eval`, `rollout` and `export` call this before Python starts.
+/// its adaptation phase) — unless the stage trains the module beside PPO
+/// (`rma.latent_regularization` > 0 in its `stage_config`) and PPO has run (`ppo_env_steps` >
+/// 0). `act`, `eval`, `rollout` and `export` call this before Python starts; Python's
+/// `evaluation.policy.check_adaptation_trained` applies the same rule.
 pub fn check_deployable(dir: &Path, meta: &CheckpointMeta) -> Result<(), CheckpointError> {
     if !meta.network.rma {
         return Ok(());
     }
     let learner = meta.extra.get(LEARNER_KEY);
-    let steps = learner.and_then(|l| l.get("adaptation_env_steps")).and_then(serde_json::Value::as_u64);
+    let count = |key: &str| learner.and_then(|l| l.get(key)).and_then(serde_json::Value::as_u64);
+    let online = meta
+        .extra
+        .get(STAGE_CONFIG_KEY)
+        .and_then(|stage| stage.get("rma")?.get("latent_regularization")?.as_f64())
+        .is_some_and(|weight| weight > 0.0);
+    if online && count("ppo_env_steps").is_some_and(|steps| steps > 0) {
+        return Ok(());
+    }
+    let steps = count("adaptation_env_steps");
     let why = match (learner, steps) {
         (_, Some(steps)) if steps > 0 => return Ok(()),
         (_, Some(_)) => format!("stage {} ended before its adaptation phase", meta.stage),

@@ -406,6 +406,17 @@ fn an_untrained_adaptation_module_is_not_deployable() {
     // A learner section without the counter.
     meta.extra.insert(LEARNER_KEY.into(), json!({"phase": "ppo"}));
     assert!(refused(&meta).unwrap_err().contains("records no adaptation_env_steps"));
+    // A PPO checkpoint of a stage that trains the module beside PPO (ROA): deployable once
+    // PPO has run, not before.
+    meta.extra.insert(STAGE_CONFIG_KEY.into(), json!({"rma": {"latent_regularization": 0.5}}));
+    meta.extra.insert(LEARNER_KEY.into(), json!({"phase": "ppo", "ppo_env_steps": 4096, "adaptation_env_steps": 0}));
+    assert_eq!(refused(&meta), Ok(()));
+    meta.extra.insert(LEARNER_KEY.into(), json!({"phase": "ppo", "ppo_env_steps": 0, "adaptation_env_steps": 0}));
+    assert!(refused(&meta).unwrap_err().contains("ended before its adaptation phase"));
+    meta.extra.insert(STAGE_CONFIG_KEY.into(), json!({"rma": {"latent_regularization": 0.0}}));
+    meta.extra.insert(LEARNER_KEY.into(), json!({"phase": "ppo", "ppo_env_steps": 4096, "adaptation_env_steps": 0}));
+    assert!(refused(&meta).unwrap_err().contains("ended before its adaptation phase"));
+    meta.extra.remove(STAGE_CONFIG_KEY);
     // Adapted: deployable.
     meta.extra.insert(LEARNER_KEY.into(), json!({"phase": "done", "adaptation_env_steps": 64}));
     assert_eq!(refused(&meta), Ok(()));
