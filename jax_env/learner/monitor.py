@@ -29,9 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jax_env import stage_config
-from jax_env.scenarios import SCENARIOS
 from jax_env.evaluation.policy import DEPLOYABLE, PRIVILEGED
 from jax_env.learner import networks as nets_lib
+from jax_env.scenarios import SCENARIOS
 
 MONITOR_SEED_SALT = 0x6D6F6E  # "mon"
 
