@@ -81,6 +81,11 @@ class LearnerConfig:
                imitation=stage.imitation if stage.imitation.weight > 0 else None,
                monitor=monitor if monitor.every > 0 else None)
 
+  @property
+  def online_adaptation(self) -> bool:
+    """[stage.rma] latent_regularization: the adaptation module also learns during PPO (ROA)."""
+    return bool(self.rma.enabled) and self.rma.latent_regularization > 0
+
   def network_config(self, env) -> nets_lib.NetworkConfig:
     p, r = self.ppo, self.rma
     return nets_lib.NetworkConfig(
@@ -313,7 +318,7 @@ def _make_steps(env, nets: nets_lib.Networks, config: LearnerConfig, maps, devic
     return jax.tree_util.tree_map(lambda x: jax.lax.psum(jnp.sum(x), AXIS), stats)
 
   # [stage.rma] latent_regularization: the PPO rollout also keeps the module's windows.
-  online = nets.config.rma and config.rma.latent_regularization > 0
+  online = config.online_adaptation
 
   def ppo_iteration(learner: ppo_lib.LearnerState, env_state, history, key, schedules,
                     calibrate):
@@ -762,12 +767,10 @@ class _StageRun:
     phase boundary's, written next."""
     progress = self.progress
     progress.best_monitor_rate = progress.best_monitor_env_steps = None
-    self.best_unsaved = False
     if (self.monitor is None or not self.config.monitor.keep_best
-        or not self.config.rma.latent_regularization > 0):
+        or not self.config.online_adaptation):
       return
     result = self.run_monitor(monitor_lib.DEPLOYABLE)
-    self.best_unsaved = False  # the boundary checkpoint follows at once
     self.log(f"stage {self.config.stage_name}: the deployable actor with the module PPO trained "
              f"online: mean monitor stand rate {result['mean_stand_rate']:.3f}")
 
